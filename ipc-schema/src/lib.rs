@@ -1,0 +1,26 @@
+//! # doorslam-ipc
+//!
+//! The types that cross process boundaries *inside* one robot, over iceoryx2 shared
+//! memory. Every type here is `#[repr(C)]`, fixed-size and [`ZeroCopySend`]: a publisher
+//! loans an uninitialized sample, writes it in place once, and subscribers read the
+//! publisher's memory. A stereo pair is never serialized or copied between processes.
+//!
+//! - [`shm`]: the payload types ([`StereoFrame`], ...) and their compile-time maxima.
+//! - [`service`]: service names per robot (`doorslam/<robot>/<topic>`), opening the
+//!   services with the settings every process must agree on, and stale-resource cleanup.
+//!
+//! Inter-robot wire messages (Zenoh) will live in `wire/` beside these.
+
+pub mod service;
+pub mod shm;
+
+pub use service::{
+    cleanup_dead_nodes, create_node, open_frames, service_name, FramePublisher, FrameSubscriber,
+    IpcError, Topic,
+};
+pub use shm::{
+    FrameError, FrameHeader, StereoFrame, MAX_FRAME_HEIGHT, MAX_FRAME_PIXELS, MAX_FRAME_WIDTH,
+};
+
+/// Re-exported so service crates use the exact iceoryx2 this schema was built against.
+pub use iceoryx2;

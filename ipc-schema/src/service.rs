@@ -1,0 +1,96 @@
+//! iceoryx2 services of one robot: names, settings and housekeeping.
+
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory;
+
+use crate::shm::StereoFrame;
+
+/// Errors of the intra-robot transport. iceoryx2's own errors are kept as text
+/// with the service they concern, so a log line says which service failed.
+#[derive(Debug, thiserror::Error)]
+pub enum IpcError {
+    #[error("invalid iceoryx2 service name {name:?}: {reason}")]
+    Name { name: String, reason: String },
+    #[error("iceoryx2 node: {0}")]
+    Node(String),
+    #[error("iceoryx2 service {service:?}: {reason}")]
+    Service { service: String, reason: String },
+}
+
+/// The topics one robot publishes internally.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Topic {
+    Frames,
+}
+
+impl Topic {
+    fn as_str(self) -> &'static str {
+        match self {
+            Topic::Frames => "frames",
+        }
+    }
+}
+
+/// `doorslam/<robot>/<topic>`: one namespace per robot, so several simulated robots
+/// can share one machine (HIL) without seeing each other's frames.
+pub fn service_name(robot: &str, topic: Topic) -> String {
+    format!("doorslam/{robot}/{}", topic.as_str())
+}
+
+/// Opens (or creates) the stereo-frame service of `robot`.
+///
+/// Every process must agree on these settings, so they are set in one place:
+/// frames are the one stream where the newest data wins, hence `safe_overflow`
+/// (a slow subscriber loses its oldest frame, the camera never blocks).
+pub fn open_frames(
+    node: &Node<ipc::Service>,
+    robot: &str,
+) -> Result<PortFactory<ipc::Service, StereoFrame, ()>, IpcError> {
+    let name = service_name(robot, Topic::Frames);
+    let service_name: ServiceName = name.as_str().try_into().map_err(|e| IpcError::Name {
+        name: name.clone(),
+        reason: format!("{e:?}"),
+    })?;
+    node.service_builder(&service_name)
+        .publish_subscribe::<StereoFrame>()
+        .enable_safe_overflow(true)
+        .subscriber_max_buffer_size(2)
+        .history_size(0)
+        .max_publishers(1)
+        .max_subscribers(8)
+        .open_or_create()
+        .map_err(|e| IpcError::Service {
+            service: name,
+            reason: format!("{e:?}"),
+        })
+}
+
+/// Creates a node, named after the process's role, after removing the shared memory
+/// left behind by processes that died (a crashed service must be restartable).
+/// Returns the node and how many dead nodes were cleaned up.
+///
+/// iceoryx2's own logging is limited to errors: doorslam configures its services in
+/// code, so iceoryx2's "no config file was loaded" warning is expected noise.
+pub fn create_node(role: &str) -> Result<(Node<ipc::Service>, u64), IpcError> {
+    set_log_level(LogLevel::Error);
+    let node_name: NodeName = role
+        .try_into()
+        .map_err(|e| IpcError::Node(format!("invalid node name {role:?}: {e:?}")))?;
+    let node = NodeBuilder::new()
+        .name(&node_name)
+        .create::<ipc::Service>()
+        .map_err(|e| IpcError::Node(format!("{e:?}")))?;
+    let cleaned = cleanup_dead_nodes(&node);
+    Ok((node, cleaned))
+}
+
+/// Removes stale resources of dead nodes; returns how many were cleaned.
+pub fn cleanup_dead_nodes(node: &Node<ipc::Service>) -> u64 {
+    node.try_cleanup_dead_nodes().cleanups
+}
+
+/// Type aliases so service crates need not spell out iceoryx2's generics.
+pub type FramePublisher = Publisher<ipc::Service, StereoFrame, ()>;
+pub type FrameSubscriber = Subscriber<ipc::Service, StereoFrame, ()>;

@@ -1,0 +1,156 @@
+//! # doorslam-camera
+//!
+//! The camera service: stereo capture with v4l2 into the robot's iceoryx2 frame service.
+//! On a machine without a camera it refuses to start with an error that points at replay
+//! (`doorslam replay`, from `hil/`), which feeds the same frame service from a dataset.
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+/// Failures of the camera service.
+#[derive(Debug, thiserror::Error)]
+pub enum CameraError {
+    #[error("no camera found at {path} (v4l2 devices present: {found}); use replay instead: `doorslam replay DATASET --config robot.toml`")]
+    NoCamera { path: PathBuf, found: String },
+    #[error("camera config: {0}")]
+    Config(String),
+    #[error("camera {path}: {reason}")]
+    Device { path: PathBuf, reason: String },
+    #[error("capture from {path} is not built yet: it arrives with the on-robot pipeline issue (#11); use `doorslam replay` meanwhile")]
+    CaptureNotBuilt { path: PathBuf },
+}
+
+/// `[camera]` section of `robot.toml`.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraConfig {
+    /// Left camera device, or the one side-by-side stereo device.
+    #[serde(default = "default_left")]
+    pub left: PathBuf,
+    /// Right camera device; absent for a side-by-side stereo device.
+    #[serde(default)]
+    pub right: Option<PathBuf>,
+    /// Image width of one eye, pixels.
+    #[serde(default = "default_width")]
+    pub width: u32,
+    /// Image height, pixels.
+    #[serde(default = "default_height")]
+    pub height: u32,
+    /// Frames per second requested from the driver.
+    #[serde(default = "default_fps")]
+    pub fps: u32,
+}
+
+fn default_left() -> PathBuf {
+    PathBuf::from("/dev/video0")
+}
+fn default_width() -> u32 {
+    752
+}
+fn default_height() -> u32 {
+    480
+}
+fn default_fps() -> u32 {
+    20
+}
+
+impl Default for CameraConfig {
+    fn default() -> Self {
+        Self {
+            left: default_left(),
+            right: None,
+            width: default_width(),
+            height: default_height(),
+            fps: default_fps(),
+        }
+    }
+}
+
+impl CameraConfig {
+    /// Checks values a driver would reject later with a less clear message.
+    pub fn validate(&self) -> Result<(), CameraError> {
+        let (w, h) = (self.width as usize, self.height as usize);
+        if w == 0
+            || h == 0
+            || w > doorslam_ipc::MAX_FRAME_WIDTH
+            || h > doorslam_ipc::MAX_FRAME_HEIGHT
+        {
+            return Err(CameraError::Config(format!(
+                "camera.width x camera.height = {w}x{h}, must be within 1x1..{}x{}",
+                doorslam_ipc::MAX_FRAME_WIDTH,
+                doorslam_ipc::MAX_FRAME_HEIGHT
+            )));
+        }
+        if self.fps == 0 || self.fps > 200 {
+            return Err(CameraError::Config(format!(
+                "camera.fps = {}, must be within 1..200",
+                self.fps
+            )));
+        }
+        Ok(())
+    }
+
+    /// The devices this config needs, left first.
+    pub fn devices(&self) -> Vec<&Path> {
+        std::iter::once(self.left.as_path())
+            .chain(self.right.as_deref())
+            .collect()
+    }
+}
+
+/// The v4l2 video devices present on this machine, sorted by path.
+pub fn enumerate_devices() -> Vec<PathBuf> {
+    let mut paths: Vec<PathBuf> = v4l::context::enum_devices()
+        .iter()
+        .map(|n| n.path().to_path_buf())
+        .collect();
+    paths.sort();
+    paths
+}
+
+/// Checks that every configured device exists and opens as a v4l2 device.
+pub fn open_devices(config: &CameraConfig) -> Result<Vec<v4l::Device>, CameraError> {
+    config.validate()?;
+    let present = enumerate_devices();
+    let found = if present.is_empty() {
+        "none".to_string()
+    } else {
+        present
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    config
+        .devices()
+        .into_iter()
+        .map(|path| {
+            if !present.iter().any(|p| p == path) {
+                return Err(CameraError::NoCamera {
+                    path: path.to_path_buf(),
+                    found: found.clone(),
+                });
+            }
+            v4l::Device::with_path(path).map_err(|e| CameraError::Device {
+                path: path.to_path_buf(),
+                reason: e.to_string(),
+            })
+        })
+        .collect()
+}
+
+/// Runs the camera service: opens the devices, then captures into the frame service.
+pub fn run(config: &CameraConfig) -> Result<(), CameraError> {
+    let devices = open_devices(config)?;
+    for dev in &devices {
+        let caps = dev.query_caps().map_err(|e| CameraError::Device {
+            path: config.left.clone(),
+            reason: e.to_string(),
+        })?;
+        tracing::info!(card = %caps.card, driver = %caps.driver, "camera opened");
+    }
+    Err(CameraError::CaptureNotBuilt {
+        path: config.left.clone(),
+    })
+}

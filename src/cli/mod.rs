@@ -1,0 +1,88 @@
+//! Subcommands, one file each.
+
+mod demo;
+mod pending;
+mod service;
+
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+/// doorslam: distributed, online, outlier-resilient SLAM for drone teams.
+#[derive(Debug, Parser)]
+#[command(name = "doorslam", version, about, long_about = None)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Run one on-robot service process (what a systemd unit starts).
+    Service(service::ServiceArgs),
+    /// Start all services of one robot as child processes.
+    Up(pending::PendingArgs),
+    /// Optimize a pose graph (g2o): Gauss-Newton / Levenberg-Marquardt.
+    Pgo(pending::PendingArgs),
+    /// Reject outlier loop closures with PCM (pairwise consistency + maximum clique).
+    Pcm(pending::PendingArgs),
+    /// Distributed pose-graph optimization (two-stage distributed Gauss-Seidel).
+    Dpgo(pending::PendingArgs),
+    /// Evaluate trajectories: ATE / RPE against ground truth.
+    Eval(pending::PendingArgs),
+    /// Simulate worlds, flights and multi-robot pose graphs.
+    Sim(pending::PendingArgs),
+    /// Replay a dataset (KITTI / EuRoC layout) into the on-robot pipeline.
+    Replay(pending::PendingArgs),
+    /// Measure what each inter-robot message kind costs in bytes.
+    Bw(pending::PendingArgs),
+    /// Run the demo (today: a check of the whole dependency stack on real data).
+    Demo(demo::DemoArgs),
+}
+
+/// Parses the command line, runs the subcommand, prints the whole error chain on failure.
+pub fn main() -> ExitCode {
+    let cli = Cli::parse();
+    init_logging();
+    let result = match cli.command {
+        Command::Service(args) => service::run(args),
+        Command::Up(args) => pending::fail("up", "the on-robot pipeline issue (#11)", &args),
+        Command::Pgo(args) => pending::fail("pgo", "the back-end core issue (#12)", &args),
+        Command::Pcm(args) => pending::fail("pcm", "the PCM outlier-rejection issue (#10)", &args),
+        Command::Dpgo(args) => {
+            pending::fail("dpgo", "the distributed back-end issue (next wave)", &args)
+        }
+        Command::Eval(args) => pending::fail("eval", "the back-end core issue (#12)", &args),
+        Command::Sim(args) => pending::fail("sim", "the HIL/simulation issue (#6)", &args),
+        Command::Replay(args) => pending::fail("replay", "the HIL/simulation issue (#6)", &args),
+        Command::Bw(args) => pending::fail("bw", "the team-link issue (next wave)", &args),
+        Command::Demo(args) => demo::run(args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Logs go to stderr (stdout is reserved for `--json` output); `RUST_LOG` overrides.
+fn init_logging() {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .try_init();
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::CommandFactory;
+
+    #[test]
+    fn command_tree_is_consistent() {
+        super::Cli::command().debug_assert();
+    }
+}

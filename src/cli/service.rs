@@ -1,0 +1,46 @@
+//! `doorslam service <name> --config robot.toml`: one on-robot service process.
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Result};
+use clap::{Args, ValueEnum};
+
+use crate::config::RobotConfig;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ServiceName {
+    Camera,
+    Frontend,
+    PlaceRecognition,
+    Backend,
+    Team,
+}
+
+#[derive(Debug, Args)]
+pub struct ServiceArgs {
+    /// Which service this process runs.
+    pub name: ServiceName,
+    /// Robot configuration (TOML); built-in defaults when absent.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+}
+
+pub fn run(args: ServiceArgs) -> Result<()> {
+    let config = RobotConfig::load_or_default(args.config.as_ref())?;
+    tracing::info!(robot = %config.robot.id, service = ?args.name, "starting service");
+    match args.name {
+        ServiceName::Camera => Ok(doorslam_camera::run(&config.camera)?),
+        ServiceName::Frontend => bail!(
+            "service frontend is not built yet: it arrives with the front-end VO issue (next wave)"
+        ),
+        ServiceName::PlaceRecognition => {
+            bail!("service place-recognition is not built yet: it arrives with the place-recognition issue (next wave)")
+        }
+        ServiceName::Backend => bail!(
+            "service backend is not built yet: it arrives with the on-robot pipeline issue (#11)"
+        ),
+        ServiceName::Team => {
+            bail!("service team is not built yet: it arrives with the team-link issue (next wave)")
+        }
+    }
+}
