@@ -39,10 +39,7 @@ fn help_lists_every_subcommand() {
 fn unfinished_commands_fail_clearly_without_panicking() {
     let pending = [
         (vec!["up"], "#11"),
-        (vec!["pgo", "graph.g2o", "--json"], "#12"),
-        (vec!["pcm", "graph.g2o"], "#10"),
         (vec!["dpgo"], "distributed back-end"),
-        (vec!["eval", "ate", "a.txt", "b.txt"], "#12"),
         (vec!["sim", "world"], "#6"),
         (vec!["replay", "dir"], "#6"),
         (vec!["bw"], "team-link"),
@@ -141,4 +138,170 @@ fn demo_checks_the_whole_stack_on_real_data() {
         );
     }
     assert!(stdout.contains("all stack checks passed"));
+}
+
+fn data(rel: &str) -> String {
+    format!("{}/../shared/data/{rel}", env!("CARGO_MANIFEST_DIR"))
+}
+
+#[test]
+fn pgo_json_has_the_documented_fields() {
+    let out = doorslam(&["pgo", &data("pose_graphs/se-sync/tinyGrid3D.g2o"), "--json"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(
+        stdout.lines().count(),
+        1,
+        "exactly one JSON object on stdout: {stdout}"
+    );
+    let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    for k in [
+        "file",
+        "poses",
+        "edges",
+        "initial_chi2",
+        "final_chi2",
+        "iterations",
+        "time_s",
+    ] {
+        assert!(v.get(k).is_some(), "missing {k}: {v}");
+    }
+    assert_eq!(v["poses"], 9);
+    assert_eq!(v["edges"], 11);
+    assert!(v["final_chi2"].as_f64().unwrap() < v["initial_chi2"].as_f64().unwrap());
+}
+
+#[test]
+fn pgo_writes_an_optimized_graph_that_reads_back_at_the_same_cost() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_file = dir.path().join("opt.g2o");
+    let out = doorslam(&[
+        "pgo",
+        &data("pose_graphs/gtsam/noisyToyGraph.txt"),
+        "--out",
+        out_file.to_str().unwrap(),
+        "--json",
+    ]);
+    let first: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let again = doorslam(&[
+        "pgo",
+        out_file.to_str().unwrap(),
+        "--init",
+        "file",
+        "--max-iterations",
+        "0",
+        "--json",
+    ]);
+    let second: serde_json::Value = serde_json::from_slice(&again.stdout).unwrap();
+    let (a, b) = (
+        first["final_chi2"].as_f64().unwrap(),
+        second["initial_chi2"].as_f64().unwrap(),
+    );
+    assert!((a - b).abs() < 1e-9 * (1.0 + a), "{a} vs {b}");
+}
+
+#[test]
+fn pgo_errors_name_the_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.g2o");
+    std::fs::write(&bad, "VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1 1 0\n").unwrap();
+    let err = stderr(&doorslam(&["pgo", bad.to_str().unwrap()]));
+    assert!(
+        err.contains("bad.g2o:2") && !err.contains("panicked"),
+        "{err}"
+    );
+    let err = stderr(&doorslam(&[
+        "pgo",
+        &data("pose_graphs/se-sync/tinyGrid3D.g2o"),
+        "--robust",
+        "huber",
+        "--robust-p",
+        "1.5",
+    ]));
+    assert!(err.contains("--robust-p 1.5"), "{err}");
+    let err = stderr(&doorslam(&["pgo", "/nonexistent/graph.g2o"]));
+    assert!(err.contains("/nonexistent/graph.g2o"), "{err}");
+}
+
+#[test]
+fn eval_ate_matches_evo_on_kitti_00() {
+    let out = doorslam(&[
+        "eval",
+        "ate",
+        &data("trajectories/evo/KITTI_00_ORB.txt"),
+        &data("trajectories/evo/KITTI_00_gt.txt"),
+        "--json",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    // evo's stored result (res_files/orb_ape.zip, stats.json).
+    assert!(
+        (v["ate_rmse"].as_f64().unwrap() - 1.3034497145650266).abs() < 1e-6,
+        "{v}"
+    );
+    assert!(
+        (v["ate_max"].as_f64().unwrap() - 3.587949120678954).abs() < 1e-6,
+        "{v}"
+    );
+    assert_eq!(v["pairs"], 4541);
+}
+
+#[test]
+fn pcm_keeps_the_inliers_of_the_4_robot_benchmark() {
+    let dir = data("outliers/pcm_simulation/spoiled/example_4robots");
+    let files: Vec<String> = (0..4).map(|r| format!("{dir}/{r}.g2o")).collect();
+    let tmp = tempfile::tempdir().unwrap();
+    let out_file = tmp.path().join("kept.g2o");
+    let mut args: Vec<&str> = vec!["pcm"];
+    args.extend(files.iter().map(String::as_str));
+    args.extend([
+        "--skip-unknown",
+        "--json",
+        "--out",
+        out_file.to_str().unwrap(),
+    ]);
+    let out = doorslam(&args);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    for k in [
+        "closures",
+        "consistent_pairs",
+        "inliers",
+        "clique_size",
+        "exact",
+        "time_s",
+    ] {
+        assert!(v.get(k).is_some(), "missing {k}: {v}");
+    }
+    assert_eq!(v["closures"], 48);
+    assert_eq!(v["clique_size"], 24);
+    assert_eq!(v["inliers"].as_array().unwrap().len(), 24);
+    assert_eq!(v["exact"], true);
+    // The written graph lost exactly the 24 rejected closures (kept in one copy each).
+    let text = std::fs::read_to_string(&out_file).unwrap();
+    let edges = text
+        .lines()
+        .filter(|l| l.starts_with("EDGE_SE3:QUAT"))
+        .count();
+    assert_eq!(edges, 4 * 20 + 24);
+}
+
+#[test]
+fn pcm_refuses_bad_thresholds_and_graphs_without_candidates() {
+    let g = data("pose_graphs/se-sync/tinyGrid3D.g2o");
+    let err = stderr(&doorslam(&["pcm", &g, "--threshold", "1.2"]));
+    assert!(
+        err.contains("p = 1.2") && err.contains("strictly between 0 and 1"),
+        "{err}"
+    );
+    let err = stderr(&doorslam(&["pcm", &g]));
+    assert!(
+        err.contains("no inter-robot edges") && err.contains("tinyGrid3D.g2o"),
+        "{err}"
+    );
+    let err = stderr(&doorslam(&[
+        "pcm",
+        &data("pose_graphs/gtsam/noisyToyGraph.txt"),
+    ]));
+    assert!(err.contains("3-D"), "{err}");
 }

@@ -1,7 +1,10 @@
 //! Subcommands, one file each.
 
 mod demo;
+mod eval;
+mod pcm;
 mod pending;
+mod pgo;
 mod service;
 
 use std::process::ExitCode;
@@ -23,13 +26,13 @@ pub enum Command {
     /// Start all services of one robot as child processes.
     Up(pending::PendingArgs),
     /// Optimize a pose graph (g2o): Gauss-Newton / Levenberg-Marquardt.
-    Pgo(pending::PendingArgs),
+    Pgo(pgo::PgoArgs),
     /// Reject outlier loop closures with PCM (pairwise consistency + maximum clique).
-    Pcm(pending::PendingArgs),
+    Pcm(pcm::PcmArgs),
     /// Distributed pose-graph optimization (two-stage distributed Gauss-Seidel).
     Dpgo(pending::PendingArgs),
     /// Evaluate trajectories: ATE / RPE against ground truth.
-    Eval(pending::PendingArgs),
+    Eval(eval::EvalArgs),
     /// Simulate worlds, flights and multi-robot pose graphs.
     Sim(pending::PendingArgs),
     /// Replay a dataset (KITTI / EuRoC layout) into the on-robot pipeline.
@@ -47,12 +50,12 @@ pub fn main() -> ExitCode {
     let result = match cli.command {
         Command::Service(args) => service::run(args),
         Command::Up(args) => pending::fail("up", "the on-robot pipeline issue (#11)", &args),
-        Command::Pgo(args) => pending::fail("pgo", "the back-end core issue (#12)", &args),
-        Command::Pcm(args) => pending::fail("pcm", "the PCM outlier-rejection issue (#10)", &args),
+        Command::Pgo(args) => pgo::run(args),
+        Command::Pcm(args) => pcm::run(args),
         Command::Dpgo(args) => {
             pending::fail("dpgo", "the distributed back-end issue (next wave)", &args)
         }
-        Command::Eval(args) => pending::fail("eval", "the back-end core issue (#12)", &args),
+        Command::Eval(args) => eval::run(args),
         Command::Sim(args) => pending::fail("sim", "the HIL/simulation issue (#6)", &args),
         Command::Replay(args) => pending::fail("replay", "the HIL/simulation issue (#6)", &args),
         Command::Bw(args) => pending::fail("bw", "the team-link issue (next wave)", &args),

@@ -4,9 +4,29 @@
 //! optimization, outlier rejection and trajectory evaluation. A pure library: no threads,
 //! no I/O besides the file readers; the `backend` service wraps it.
 //!
-//! Landed so far: [`linear`], the sparse Cholesky solver of the normal equations
-//! (faer), which keeps its symbolic factorization between iterations.
+//! - [`lie`]: SE(2)/SE(3) `Exp`/`Log`, adjoints and right Jacobians (right perturbations,
+//!   rotation-first tangents);
+//! - [`graph`], [`g2o`]: pose graphs with multi-robot keys, g2o reading/writing;
+//! - [`solver`], [`init`], [`robust`], [`sparsity`], [`linear`]: Gauss-Newton /
+//!   Levenberg-Marquardt on the sparse normal equations (faer Cholesky, symbolic
+//!   factorization reused), chordal initialization, robust kernels and GNC;
+//! - [`outliers`]: PCM (pairwise consistency + exact maximum clique);
+//! - [`eval`]: trajectory IO (KITTI/TUM/EuRoC), Umeyama alignment, ATE/RPE as evo.
 
+pub mod eval;
+pub mod g2o;
+pub mod graph;
+pub mod init;
+pub mod lie;
 pub mod linear;
+pub mod outliers;
+pub mod robust;
+pub mod solver;
+pub mod sparsity;
 
+pub use g2o::{read_g2o, write_g2o, G2oFile, Graph, GraphError, UnknownTags};
+pub use graph::{key, BetweenFactor, EdgeClass, PoseGraph};
+pub use lie::LieGroup;
 pub use linear::{LinearError, SparseCholesky};
+pub use robust::Kernel;
+pub use solver::{optimize, Method, Optimizer, SolveError, SolverOptions, Summary};

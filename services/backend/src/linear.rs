@@ -7,8 +7,8 @@
 
 use faer::linalg::solvers::Solve;
 use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
-use faer::sparse::{SparseColMat, Triplet};
-use faer::{Mat, Side};
+use faer::sparse::{SparseColMat, SparseColMatRef, Triplet};
+use faer::{Mat, MatMut, Side};
 
 /// Failures of the linear solve.
 #[derive(Debug, thiserror::Error)]
@@ -65,18 +65,37 @@ impl SparseCholesky {
         a: &SparseColMat<usize, f64>,
         b: &[f64],
     ) -> Result<Vec<f64>, LinearError> {
+        if b.len() != a.nrows() {
+            return Err(LinearError::RhsLength {
+                got: b.len(),
+                want: a.nrows(),
+            });
+        }
+        let mut rhs = Mat::from_fn(b.len(), 1, |i, _| b[i]);
+        self.solve_in_place(a.as_ref(), rhs.as_mut())?;
+        Ok((0..b.len()).map(|i| rhs[(i, 0)]).collect())
+    }
+
+    /// Solves `A X = B` in place for one or more right-hand-side columns; `a` holds (at
+    /// least) the lower triangle of a symmetric positive-definite matrix.
+    pub fn solve_in_place(
+        &mut self,
+        a: SparseColMatRef<'_, usize, f64>,
+        mut rhs: MatMut<'_, f64>,
+    ) -> Result<(), LinearError> {
         let (rows, cols) = (a.nrows(), a.ncols());
         if rows != cols {
             return Err(LinearError::NotSquare { rows, cols });
         }
-        if b.len() != rows {
+        if rhs.nrows() != rows {
             return Err(LinearError::RhsLength {
-                got: b.len(),
+                got: rhs.nrows(),
                 want: rows,
             });
         }
         let pattern = a.symbolic();
         let symbolic = match &self.symbolic {
+            // Same pattern: the common case in an optimizer loop; compare cheaply first.
             Some((col_ptr, row_idx, s))
                 if col_ptr == pattern.col_ptr() && row_idx == pattern.row_idx() =>
             {
@@ -94,10 +113,9 @@ impl SparseCholesky {
                 s
             }
         };
-        let llt = Llt::try_new_with_symbolic(symbolic, a.as_ref(), Side::Lower)
+        let llt = Llt::try_new_with_symbolic(symbolic, a, Side::Lower)
             .map_err(|e| LinearError::NotPositiveDefinite(format!("{e:?}")))?;
-        let rhs = Mat::from_fn(rows, 1, |i, _| b[i]);
-        let x = llt.solve(&rhs);
-        Ok((0..rows).map(|i| x[(i, 0)]).collect())
+        llt.solve_in_place(rhs.as_mut());
+        Ok(())
     }
 }

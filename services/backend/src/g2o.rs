@@ -1,0 +1,420 @@
+//! g2o files: `VERTEX_SE2`, `EDGE_SE2`, `VERTEX_SE3:QUAT`, `EDGE_SE3:QUAT` (and `FIX`).
+//!
+//! g2o stores information matrices in translation-first order; the solver uses
+//! rotation-first (see [`crate::lie`]): the blocks are permuted here and only here.
+//! Files without `VERTEX` lines (or with edges to poses that have none) get initial
+//! poses by chaining edges outward from the first pose (a spanning tree, file order).
+
+use std::collections::VecDeque;
+use std::io::Write;
+use std::path::Path;
+
+use nalgebra::{Isometry2, Isometry3, Quaternion, Translation3, UnitQuaternion};
+
+use crate::graph::PoseGraph;
+use crate::lie::{LieGroup, TangentMatrix};
+
+/// Errors of reading or writing a graph file; parse errors name the file and line.
+#[derive(Debug, thiserror::Error)]
+pub enum GraphError {
+    #[error("{file}: {source}")]
+    Io {
+        file: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{file}:{line}: {msg}")]
+    Parse {
+        file: String,
+        line: usize,
+        msg: String,
+    },
+    #[error("{file}: {msg}")]
+    Graph { file: String, msg: String },
+}
+
+/// A graph read from a file: planar or 3-D.
+#[derive(Debug, Clone)]
+pub enum Graph {
+    Se2(PoseGraph<Isometry2<f64>>),
+    Se3(PoseGraph<Isometry3<f64>>),
+}
+
+/// How to treat lines with tags this reader does not know.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum UnknownTags {
+    /// An unknown tag is an error (default: a typo or an unsupported factor must not
+    /// silently change the problem).
+    #[default]
+    Error,
+    /// Skip the line and record a warning.
+    Skip,
+}
+
+/// The result of reading: the graph, the keys g2o marked `FIX`, and warnings.
+#[derive(Debug, Clone)]
+pub struct G2oFile {
+    pub graph: Graph,
+    pub fixed: Vec<u64>,
+    pub warnings: Vec<String>,
+    /// Poses that had no VERTEX line and were initialized by chaining edges.
+    pub chained: usize,
+    /// Per pose index: whether the file had a VERTEX line for it.
+    pub has_vertex: Vec<bool>,
+}
+
+struct Ctx<'a> {
+    file: &'a str,
+    line: usize,
+}
+
+impl Ctx<'_> {
+    fn err(&self, msg: impl Into<String>) -> GraphError {
+        GraphError::Parse {
+            file: self.file.to_string(),
+            line: self.line,
+            msg: msg.into(),
+        }
+    }
+    fn numbers<const N: usize>(&self, tag: &str, fields: &[&str]) -> Result<[f64; N], GraphError> {
+        if fields.len() != N {
+            return Err(self.err(format!(
+                "{tag} needs {N} numbers after the tag, found {}",
+                fields.len()
+            )));
+        }
+        let mut out = [0.0; N];
+        for (k, f) in fields.iter().enumerate() {
+            let v: f64 = f
+                .parse()
+                .map_err(|_| self.err(format!("{tag}: field {} {f:?} is not a number", k + 1)))?;
+            if !v.is_finite() {
+                return Err(self.err(format!("{tag}: field {} is {f}, not finite", k + 1)));
+            }
+            out[k] = v;
+        }
+        Ok(out)
+    }
+    fn key(&self, tag: &str, f: &str) -> Result<u64, GraphError> {
+        f.parse()
+            .map_err(|_| self.err(format!("{tag}: {f:?} is not a pose id (unsigned integer)")))
+    }
+    fn quaternion(
+        &self,
+        tag: &str,
+        x: f64,
+        y: f64,
+        z: f64,
+        w: f64,
+    ) -> Result<UnitQuaternion<f64>, GraphError> {
+        let q = Quaternion::new(w, x, y, z);
+        if (q.norm() - 1.0).abs() > 1e-2 {
+            return Err(self.err(format!(
+                "{tag}: quaternion ({x}, {y}, {z}, {w}) has norm {:.4}, expected 1",
+                q.norm()
+            )));
+        }
+        Ok(UnitQuaternion::from_quaternion(q))
+    }
+    /// Symmetric matrix from the row-major upper triangle, permuted by `order`
+    /// (file index -> solver index), checked positive definite.
+    fn information(
+        &self,
+        tag: &str,
+        upper: &[f64],
+        n: usize,
+        order: &[usize],
+    ) -> Result<TangentMatrix, GraphError> {
+        let mut m = TangentMatrix::zeros();
+        let mut k = 0;
+        for r in 0..n {
+            for c in r..n {
+                let (a, b) = (order[r], order[c]);
+                m[(a, b)] = upper[k];
+                m[(b, a)] = upper[k];
+                k += 1;
+            }
+        }
+        if m.view((0, 0), (n, n)).into_owned().cholesky().is_none() {
+            return Err(self.err(format!(
+                "{tag}: information matrix is not positive definite"
+            )));
+        }
+        Ok(m)
+    }
+}
+
+/// Translation-first (g2o) to rotation-first (solver) index maps.
+const SE3_ORDER: [usize; 6] = [3, 4, 5, 0, 1, 2];
+const SE2_ORDER: [usize; 3] = [1, 2, 0];
+
+enum Dimension {
+    Unknown,
+    Two,
+    Three,
+}
+
+/// Reads a g2o file.
+pub fn read_g2o(path: &Path, unknown: UnknownTags) -> Result<G2oFile, GraphError> {
+    let file = path.display().to_string();
+    let text = std::fs::read_to_string(path).map_err(|source| GraphError::Io {
+        file: file.clone(),
+        source,
+    })?;
+    parse_g2o(&text, &file, unknown)
+}
+
+/// Parses g2o text; `file` names the source in errors.
+pub fn parse_g2o(text: &str, file: &str, unknown: UnknownTags) -> Result<G2oFile, GraphError> {
+    let mut g2 = PoseGraph::<Isometry2<f64>>::new();
+    let mut g3 = PoseGraph::<Isometry3<f64>>::new();
+    // Vertices may come after the edges that use them: collect, then build.
+    let mut v2: Vec<(u64, Isometry2<f64>)> = Vec::new();
+    let mut v3: Vec<(u64, Isometry3<f64>)> = Vec::new();
+    let mut e2: Vec<(u64, u64, Isometry2<f64>, TangentMatrix)> = Vec::new();
+    let mut e3: Vec<(u64, u64, Isometry3<f64>, TangentMatrix)> = Vec::new();
+    let mut dim = Dimension::Unknown;
+    let mut fixed = Vec::new();
+    let mut warnings = Vec::new();
+    for (n, raw) in text.lines().enumerate() {
+        let ctx = Ctx { file, line: n + 1 };
+        let line = raw.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let mut it = line.split_whitespace();
+        let tag = it.next().unwrap_or_default();
+        let fields: Vec<&str> = it.collect();
+        let mut set_dim = |d: Dimension| -> Result<(), GraphError> {
+            match (&dim, &d) {
+                (Dimension::Unknown, _) => {
+                    dim = d;
+                    Ok(())
+                }
+                (Dimension::Two, Dimension::Two) | (Dimension::Three, Dimension::Three) => Ok(()),
+                _ => Err(ctx.err(format!("{tag} mixes 2-D and 3-D elements in one graph"))),
+            }
+        };
+        match tag {
+            "VERTEX_SE2" => {
+                set_dim(Dimension::Two)?;
+                let (id, rest) = fields.split_first().ok_or_else(|| ctx.err("VERTEX_SE2 without an id"))?;
+                let [x, y, th] = ctx.numbers::<3>(tag, rest)?;
+                v2.push((ctx.key(tag, id)?, Isometry2::new(nalgebra::Vector2::new(x, y), th)));
+            }
+            "EDGE_SE2" => {
+                set_dim(Dimension::Two)?;
+                if fields.len() < 2 {
+                    return Err(ctx.err("EDGE_SE2 needs two pose ids"));
+                }
+                let (i, j) = (ctx.key(tag, fields[0])?, ctx.key(tag, fields[1])?);
+                let v = ctx.numbers::<9>(tag, &fields[2..])?;
+                let info = ctx.information(tag, &v[3..], 3, &SE2_ORDER)?;
+                e2.push((i, j, Isometry2::new(nalgebra::Vector2::new(v[0], v[1]), v[2]), info));
+            }
+            "VERTEX_SE3:QUAT" => {
+                set_dim(Dimension::Three)?;
+                let (id, rest) = fields.split_first().ok_or_else(|| ctx.err("VERTEX_SE3:QUAT without an id"))?;
+                let [x, y, z, qx, qy, qz, qw] = ctx.numbers::<7>(tag, rest)?;
+                let q = ctx.quaternion(tag, qx, qy, qz, qw)?;
+                v3.push((ctx.key(tag, id)?, Isometry3::from_parts(Translation3::new(x, y, z), q)));
+            }
+            "EDGE_SE3:QUAT" => {
+                set_dim(Dimension::Three)?;
+                if fields.len() < 2 {
+                    return Err(ctx.err("EDGE_SE3:QUAT needs two pose ids"));
+                }
+                let (i, j) = (ctx.key(tag, fields[0])?, ctx.key(tag, fields[1])?);
+                let v = ctx.numbers::<28>(tag, &fields[2..])?;
+                let q = ctx.quaternion(tag, v[3], v[4], v[5], v[6])?;
+                let info = ctx.information(tag, &v[7..], 6, &SE3_ORDER)?;
+                e3.push((i, j, Isometry3::from_parts(Translation3::new(v[0], v[1], v[2]), q), info));
+            }
+            "FIX" => {
+                for f in &fields {
+                    fixed.push(ctx.key(tag, f)?);
+                }
+            }
+            _ => match unknown {
+                UnknownTags::Error => {
+                    return Err(ctx.err(format!(
+                        "unknown tag {tag:?} (supported: VERTEX_SE2, EDGE_SE2, VERTEX_SE3:QUAT, EDGE_SE3:QUAT, FIX); skip such lines with --skip-unknown"
+                    )))
+                }
+                UnknownTags::Skip => warnings.push(format!("{file}:{}: skipped unknown tag {tag:?}", n + 1)),
+            },
+        }
+    }
+    let (graph, has_vertex) = match dim {
+        Dimension::Unknown => {
+            return Err(GraphError::Graph {
+                file: file.into(),
+                msg: "no vertices or edges".into(),
+            })
+        }
+        Dimension::Two => {
+            let known = assemble(&mut g2, v2, e2, file)?;
+            (Graph::Se2(g2), known)
+        }
+        Dimension::Three => {
+            let known = assemble(&mut g3, v3, e3, file)?;
+            (Graph::Se3(g3), known)
+        }
+    };
+    let chained = has_vertex.iter().filter(|k| !**k).count();
+    Ok(G2oFile {
+        graph,
+        fixed,
+        warnings,
+        chained,
+        has_vertex,
+    })
+}
+
+/// Builds the graph: vertices in file order, then poses only edges mention, initialized
+/// by chaining edges breadth-first from the first pose. Returns, per pose, whether it had
+/// a VERTEX line.
+fn assemble<G: LieGroup>(
+    g: &mut PoseGraph<G>,
+    vertices: Vec<(u64, G)>,
+    edges: Vec<(u64, u64, G, TangentMatrix)>,
+    file: &str,
+) -> Result<Vec<bool>, GraphError> {
+    let mut known = vec![];
+    for (k, p) in vertices {
+        let before = g.len();
+        let idx = g.add_pose(k, p);
+        if idx == before {
+            known.push(true);
+        }
+    }
+    for (i, j, _, _) in &edges {
+        for k in [*i, *j] {
+            if g.index_of(k).is_none() {
+                g.add_pose(k, G::identity());
+                known.push(false);
+            }
+        }
+    }
+    for (i, j, z, info) in edges {
+        let (a, b) = (g.index_of(i).unwrap_or(0), g.index_of(j).unwrap_or(0));
+        if a == b {
+            return Err(GraphError::Graph {
+                file: file.into(),
+                msg: format!("edge from pose {i} to itself"),
+            });
+        }
+        g.add_edge(a, b, z, info);
+    }
+    if known.iter().all(|k| *k) {
+        return Ok(known);
+    }
+    let start = known.iter().position(|k| *k).unwrap_or(0);
+    crate::init::chain(g, start, &known);
+    let reached = reached_from(g, start);
+    if let Some(p) = (0..g.len()).find(|&p| !reached[p]) {
+        return Err(GraphError::Graph {
+            file: file.into(),
+            msg: format!(
+                "pose {} has no VERTEX line and no chain of edges to the first pose",
+                crate::graph::key::label(g.keys()[p])
+            ),
+        });
+    }
+    Ok(known)
+}
+
+/// Which poses are connected to `start` through edges.
+fn reached_from<G: LieGroup>(g: &PoseGraph<G>, start: usize) -> Vec<bool> {
+    let mut adj = vec![Vec::new(); g.len()];
+    for e in &g.edges {
+        adj[e.i].push(e.j);
+        adj[e.j].push(e.i);
+    }
+    let mut seen = vec![false; g.len()];
+    let mut queue = VecDeque::from([start]);
+    seen[start] = true;
+    while let Some(a) = queue.pop_front() {
+        for &b in &adj[a] {
+            if !seen[b] {
+                seen[b] = true;
+                queue.push_back(b);
+            }
+        }
+    }
+    seen
+}
+
+fn upper_triangle(m: &TangentMatrix, n: usize, order: &[usize]) -> Vec<f64> {
+    let mut out = Vec::with_capacity(n * (n + 1) / 2);
+    for r in 0..n {
+        for c in r..n {
+            out.push(m[(order[r], order[c])]);
+        }
+    }
+    out
+}
+
+fn join(v: &[f64]) -> String {
+    v.iter()
+        .map(|x| format!("{x:.17e}"))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+/// Writes a graph as g2o (full precision), in the same element types it was read with.
+pub fn write_g2o(graph: &Graph, path: &Path) -> Result<(), GraphError> {
+    let file = path.display().to_string();
+    let io = |source| GraphError::Io {
+        file: file.clone(),
+        source,
+    };
+    let mut w = std::io::BufWriter::new(std::fs::File::create(path).map_err(io)?);
+    match graph {
+        Graph::Se2(g) => {
+            for (k, p) in g.keys().iter().zip(g.poses()) {
+                let t = p.translation.vector;
+                writeln!(
+                    w,
+                    "VERTEX_SE2 {k} {}",
+                    join(&[t.x, t.y, p.rotation.angle()])
+                )
+                .map_err(io)?;
+            }
+            for e in &g.edges {
+                let t = e.measured.translation.vector;
+                let info = upper_triangle(&e.information, 3, &SE2_ORDER);
+                let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
+                writeln!(
+                    w,
+                    "EDGE_SE2 {a} {b} {} {}",
+                    join(&[t.x, t.y, e.measured.rotation.angle()]),
+                    join(&info)
+                )
+                .map_err(io)?;
+            }
+        }
+        Graph::Se3(g) => {
+            for (k, p) in g.keys().iter().zip(g.poses()) {
+                writeln!(w, "VERTEX_SE3:QUAT {k} {}", join(&pose7(p))).map_err(io)?;
+            }
+            for e in &g.edges {
+                let info = upper_triangle(&e.information, 6, &SE3_ORDER);
+                let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
+                writeln!(
+                    w,
+                    "EDGE_SE3:QUAT {a} {b} {} {}",
+                    join(&pose7(&e.measured)),
+                    join(&info)
+                )
+                .map_err(io)?;
+            }
+        }
+    }
+    w.flush().map_err(io)
+}
+
+fn pose7(p: &Isometry3<f64>) -> [f64; 7] {
+    let (t, q) = (p.translation.vector, p.rotation.quaternion());
+    [t.x, t.y, t.z, q.i, q.j, q.k, q.w]
+}

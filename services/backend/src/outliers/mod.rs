@@ -1,0 +1,13 @@
+//! Outlier rejection of loop closures by Pairwise Consistency Maximization (PCM, Mangelson
+//! et al. 2018): the largest set of pairwise-consistent closures is a maximum clique.
+
+pub mod max_clique;
+pub mod pcm;
+
+pub use max_clique::{
+    core_decomposition, heuristic_clique, maximum_clique, CliqueOptions, CliqueResult,
+    ConsistencyGraph, CoreDecomposition, VertexOutOfRange,
+};
+pub use pcm::{
+    pairwise_mahalanobis2, Closure, Odometry, PairProblem, Pcm, PcmError, PcmSummary, Scope,
+};

@@ -1,0 +1,353 @@
+//! Pairwise Consistency Maximization (Mangelson et al. 2018; DOOR-SLAM §III-C).
+//!
+//! Two loop closures between the same two trajectories, `z₁` from pose `u₁` (robot α) to
+//! `v₁` (robot β) and `z₂` from `u₂` to `v₂`, close a cycle with the odometry of each robot:
+//!
+//! `T = (x̂ᵤ₁⁻¹ x̂ᵤ₂) · z₂ · (x̂ᵥ₂⁻¹ x̂ᵥ₁) · z₁⁻¹`,   `e = Log(T)`   (paper eq. 1)
+//!
+//! which is the identity if both closures are right. With the covariances of the four
+//! factors propagated to `e` (first order, right perturbations: factor k contributes
+//! `Ad((F_{k+1}⋯F₄)⁻¹) Σₖ Ad(⋯)ᵀ`, then `Jr⁻¹(e)` maps to the tangent of `e`), the pair is
+//! consistent when the squared Mahalanobis norm `eᵀΣₑ⁻¹e ≤ γ`, `γ = χ²₆ quantile(p)`.
+//! The largest mutually consistent set is a maximum clique of the consistency graph.
+//!
+//! Odometric estimates come from the robots' odometry edges alone (consecutive keys),
+//! chained with their covariances; the relative odometry between two poses of a robot is
+//! then O(1) from prefix products: `Σᵤᵥ = Σ₀ᵥ − Ad(Tᵤᵥ⁻¹) Σ₀ᵤ Ad(Tᵤᵥ⁻¹)ᵀ`.
+//! Each robot pair is its own problem; new closures are checked only against the existing
+//! ones and the clique search warm-starts from the previous clique.
+
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
+use nalgebra::{Isometry3, Matrix6};
+
+use super::max_clique::{maximum_clique, CliqueOptions, ConsistencyGraph};
+use crate::graph::{key, EdgeClass, PoseGraph};
+use crate::lie::{LieGroup, Tangent};
+use crate::robust::chi2_quantile;
+
+/// Failures of PCM.
+#[derive(Debug, thiserror::Error)]
+pub enum PcmError {
+    #[error("PCM threshold p = {0} must be a probability strictly between 0 and 1")]
+    Threshold(f64),
+    #[error("no candidate closures: {0}")]
+    NoCandidates(String),
+    #[error("information matrix of the edge {a} -> {b} is not invertible")]
+    Covariance { a: String, b: String },
+}
+
+/// A loop-closure candidate between pose `u` (first trajectory) and `v` (second).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Closure {
+    pub u: u64,
+    pub v: u64,
+    /// `z ≈ Xᵤ⁻¹ Xᵥ`.
+    pub measured: Isometry3<f64>,
+    pub covariance: Matrix6<f64>,
+}
+
+impl Closure {
+    /// The same closure seen from the other side: `z⁻¹`, covariance `Ad(z) Σ Ad(z)ᵀ`.
+    pub fn reversed(&self) -> Self {
+        let ad = self.measured.adjoint();
+        Closure {
+            u: self.v,
+            v: self.u,
+            measured: self.measured.inverse(),
+            covariance: ad * self.covariance * ad.transpose(),
+        }
+    }
+}
+
+/// A pose relative to the start of its odometry segment: (segment, T₀ₘ, Σ₀ₘ at m).
+type ChainEntry = (usize, Isometry3<f64>, Matrix6<f64>);
+/// A relative pose with its covariance.
+type Uncertain = (Isometry3<f64>, Matrix6<f64>);
+
+/// One robot's odometry: cumulative pose and covariance of each pose from the start of
+/// its segment (a gap in the odometry chain starts a new segment).
+#[derive(Debug, Clone, Default)]
+pub struct Odometry {
+    /// Per robot: index -> (segment, T₀ₘ, Σ₀ₘ at m).
+    chains: BTreeMap<Option<u8>, BTreeMap<u64, ChainEntry>>,
+}
+
+impl Odometry {
+    /// Chains the odometry edges (consecutive indices of one robot) of `graph`.
+    pub fn from_graph(graph: &PoseGraph<Isometry3<f64>>) -> Result<Self, PcmError> {
+        // (robot, index) -> (measurement to index + 1, its covariance).
+        let mut steps: BTreeMap<(Option<u8>, u64), Uncertain> = BTreeMap::new();
+        let keys = graph.keys();
+        for e in &graph.edges {
+            if graph.edge_class(e) != EdgeClass::Odometry {
+                continue;
+            }
+            let c = closure_of(keys[e.i], keys[e.j], e.measured, &e.information)?;
+            let c = if key::index(c.u) < key::index(c.v) {
+                c
+            } else {
+                c.reversed()
+            };
+            steps
+                .entry((key::robot(c.u), key::index(c.u)))
+                .or_insert((c.measured, c.covariance));
+        }
+        let mut odo = Odometry::default();
+        for &k in keys {
+            odo.chains.entry(key::robot(k)).or_default();
+        }
+        for (robot, chain) in odo.chains.iter_mut() {
+            let mut indices: Vec<u64> = keys
+                .iter()
+                .filter(|k| key::robot(**k) == *robot)
+                .map(|k| key::index(*k))
+                .collect();
+            indices.sort_unstable();
+            let mut segment = 0;
+            let mut prev: Option<(u64, Isometry3<f64>, Matrix6<f64>)> = None;
+            for m in indices {
+                let entry = match prev {
+                    Some((p, t, s)) if p + 1 == m => match steps.get(&(*robot, p)) {
+                        Some((z, sz)) => {
+                            let ad = z.inverse().adjoint();
+                            (t * z, ad * s * ad.transpose() + sz)
+                        }
+                        None => {
+                            segment += 1;
+                            (Isometry3::identity(), Matrix6::zeros())
+                        }
+                    },
+                    _ => {
+                        segment += 1;
+                        (Isometry3::identity(), Matrix6::zeros())
+                    }
+                };
+                chain.insert(m, (segment, entry.0, entry.1));
+                prev = Some((m, entry.0, entry.1));
+            }
+        }
+        Ok(odo)
+    }
+
+    /// Odometric `x̂ᵤ⁻¹ x̂ᵥ` of two poses of one robot and its covariance, if both lie on
+    /// the same odometry segment.
+    pub fn between(&self, u: u64, v: u64) -> Option<(Isometry3<f64>, Matrix6<f64>)> {
+        let chain = self.chains.get(&key::robot(u))?;
+        if key::robot(u) != key::robot(v) {
+            return None;
+        }
+        let &(su, tu, cu) = chain.get(&key::index(u))?;
+        let &(sv, tv, cv) = chain.get(&key::index(v))?;
+        if su != sv {
+            return None;
+        }
+        if key::index(u) <= key::index(v) {
+            let t = tu.inverse() * tv;
+            let ad = t.inverse().adjoint();
+            Some((t, cv - ad * cu * ad.transpose()))
+        } else {
+            let t = tv.inverse() * tu;
+            let ad = t.inverse().adjoint();
+            let forward = cu - ad * cv * ad.transpose();
+            let back = t.adjoint();
+            Some((t.inverse(), back * forward * back.transpose()))
+        }
+    }
+}
+
+fn closure_of(a: u64, b: u64, z: Isometry3<f64>, info: &Matrix6<f64>) -> Result<Closure, PcmError> {
+    let covariance = info
+        .cholesky()
+        .map(|c| c.inverse())
+        .ok_or_else(|| PcmError::Covariance {
+            a: key::label(a),
+            b: key::label(b),
+        })?;
+    Ok(Closure {
+        u: a,
+        v: b,
+        measured: z,
+        covariance,
+    })
+}
+
+/// Squared Mahalanobis norm of the cycle error of two closures (paper eq. 1), or `None`
+/// if the odometry does not connect their endpoints.
+pub fn pairwise_mahalanobis2(odo: &Odometry, c1: &Closure, c2: &Closure) -> Option<f64> {
+    let (a, sa) = odo.between(c1.u, c2.u)?;
+    let (c, sc) = odo.between(c2.v, c1.v)?;
+    let (b, sb) = (c2.measured, c2.covariance);
+    let d = c1.measured.inverse();
+    let ad_z1 = c1.measured.adjoint();
+    let sd = ad_z1 * c1.covariance * ad_z1.transpose();
+    // Σ_T = Σₖ Ad((Fₖ₊₁⋯F₄)⁻¹) Σₖ Ad(⋯)ᵀ for T = A·B·C·D.
+    let cd = c * d;
+    let bcd = b * cd;
+    let prop = |after: &Isometry3<f64>, s: &Matrix6<f64>| {
+        let ad = after.inverse().adjoint();
+        ad * s * ad.transpose()
+    };
+    let sigma_t = prop(&bcd, &sa) + prop(&cd, &sb) + prop(&d, &sc) + sd;
+    let e: Tangent = (a * bcd).log();
+    let jr_inv = Isometry3::right_jacobian_inv(&e);
+    let sigma_e = jr_inv * sigma_t * jr_inv.transpose();
+    let inv = sigma_e.cholesky()?.inverse();
+    Some(e.dot(&(inv * e)))
+}
+
+/// The closures between one pair of trajectories, their consistency graph and clique.
+#[derive(Debug, Clone, Default)]
+pub struct PairProblem {
+    pub closures: Vec<Closure>,
+    graph: ConsistencyGraph,
+    clique: Vec<usize>,
+    exact: bool,
+}
+
+impl PairProblem {
+    /// Adds closures, checking each new one against all others (old and new), then
+    /// re-solves the maximum clique warm-started from the previous one.
+    pub fn add(&mut self, new: Vec<Closure>, odo: &Odometry, gamma: f64, budget: Option<Duration>) {
+        for c in new {
+            let v = self.graph.add_vertex();
+            for (w, other) in self.closures.iter().enumerate() {
+                if pairwise_mahalanobis2(odo, other, &c).is_some_and(|d2| d2 <= gamma) {
+                    // Both indices exist: add_edge cannot fail here.
+                    let _ = self.graph.add_edge(v, w);
+                }
+            }
+            self.closures.push(c);
+        }
+        let result = maximum_clique(
+            &self.graph,
+            &CliqueOptions {
+                initial: Some(self.clique.clone()),
+                time_budget: budget,
+            },
+        );
+        self.clique = result.vertices;
+        self.exact = result.exact;
+    }
+
+    /// Indices (into `closures`) of the maximum clique.
+    pub fn inliers(&self) -> &[usize] {
+        &self.clique
+    }
+    pub fn exact(&self) -> bool {
+        self.exact
+    }
+    pub fn consistent_pairs(&self) -> usize {
+        self.graph.edge_count()
+    }
+}
+
+/// Which closures PCM considers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Scope {
+    /// Closures between different robots, one problem per robot pair.
+    InterRobot,
+    /// Non-consecutive closures within each robot, one problem per robot.
+    IntraRobot,
+}
+
+/// PCM over a whole graph: one [`PairProblem`] per robot pair (or per robot).
+#[derive(Debug, Clone)]
+pub struct Pcm {
+    pub gamma: f64,
+    pub scope: Scope,
+    pub budget: Option<Duration>,
+    pub problems: BTreeMap<(Option<u8>, Option<u8>), PairProblem>,
+}
+
+/// Summary of a PCM run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PcmSummary {
+    pub closures: usize,
+    pub consistent_pairs: usize,
+    /// Kept closures as (key, key), in the direction they were given.
+    pub inliers: Vec<(u64, u64)>,
+    pub clique_size: usize,
+    pub exact: bool,
+    pub time_s: f64,
+}
+
+impl Pcm {
+    /// `p`: probability that a consistent pair passes with honest covariances.
+    pub fn new(p: f64, scope: Scope) -> Result<Self, PcmError> {
+        let gamma = chi2_quantile(p, 6).ok_or(PcmError::Threshold(p))?;
+        Ok(Self {
+            gamma,
+            scope,
+            budget: None,
+            problems: BTreeMap::new(),
+        })
+    }
+
+    /// Runs PCM on the candidate edges of `graph` (all at once; call again with a larger
+    /// graph to add the new closures incrementally). Returns the summary over all pairs.
+    pub fn run(&mut self, graph: &PoseGraph<Isometry3<f64>>) -> Result<PcmSummary, PcmError> {
+        let start = Instant::now();
+        let odo = Odometry::from_graph(graph)?;
+        let keys = graph.keys();
+        let wanted = match self.scope {
+            Scope::InterRobot => EdgeClass::InterLoop,
+            Scope::IntraRobot => EdgeClass::IntraLoop,
+        };
+        let mut new: BTreeMap<(Option<u8>, Option<u8>), Vec<Closure>> = BTreeMap::new();
+        let mut total = 0;
+        for e in graph.edges.iter().filter(|e| graph.edge_class(e) == wanted) {
+            total += 1;
+            let c = closure_of(keys[e.i], keys[e.j], e.measured, &e.information)?;
+            // Orient every closure of a pair the same way (lower robot, then lower index first).
+            let c = if (key::robot(c.u), key::index(c.u)) <= (key::robot(c.v), key::index(c.v)) {
+                c
+            } else {
+                c.reversed()
+            };
+            let pair = (key::robot(c.u), key::robot(c.v));
+            let known = self.problems.get(&pair).is_some_and(|p| {
+                p.closures
+                    .iter()
+                    .any(|k| k.u == c.u && k.v == c.v && k.measured == c.measured)
+            });
+            if !known {
+                new.entry(pair).or_default().push(c);
+            }
+        }
+        if total == 0 {
+            return Err(PcmError::NoCandidates(match self.scope {
+                Scope::InterRobot => "the graph has no inter-robot edges (keys must follow the multi-robot convention (robot_char << 56) | index); use --intra for single-robot loop closures".into(),
+                Scope::IntraRobot => "the graph has no loop closures between non-consecutive poses of one robot".into(),
+            }));
+        }
+        for (pair, closures) in new {
+            self.problems
+                .entry(pair)
+                .or_default()
+                .add(closures, &odo, self.gamma, self.budget);
+        }
+        let mut s = PcmSummary {
+            closures: 0,
+            consistent_pairs: 0,
+            inliers: Vec::new(),
+            clique_size: 0,
+            exact: true,
+            time_s: 0.0,
+        };
+        for p in self.problems.values() {
+            s.closures += p.closures.len();
+            s.consistent_pairs += p.consistent_pairs();
+            s.clique_size += p.inliers().len();
+            s.exact &= p.exact();
+            s.inliers.extend(
+                p.inliers()
+                    .iter()
+                    .map(|&k| (p.closures[k].u, p.closures[k].v)),
+            );
+        }
+        s.time_s = start.elapsed().as_secs_f64();
+        Ok(s)
+    }
+}

@@ -1,0 +1,199 @@
+//! PCM on the outlier benchmarks of ../shared/data/outliers: the kept closures are exactly
+//! the labelled inliers, and the maximum clique sizes are those the upstream tests expect.
+
+use std::collections::BTreeSet;
+use std::path::PathBuf;
+
+use doorslam_backend::outliers::{pairwise_mahalanobis2, Closure, Odometry, Pcm, PcmError, Scope};
+use doorslam_backend::{key, read_g2o, Graph, PoseGraph, UnknownTags};
+use nalgebra::Isometry3;
+
+fn folder(rel: &str) -> PathBuf {
+    std::env::var_os("DOORSLAM_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data"))
+        .join("outliers/pcm_simulation")
+        .join(rel)
+}
+
+/// Merges the per-robot files (inter-robot edges appear in both; keep them once).
+fn load(rel: &str, robots: usize) -> PoseGraph<Isometry3<f64>> {
+    let mut merged = PoseGraph::new();
+    let mut seen = BTreeSet::new();
+    for r in 0..robots {
+        let file = read_g2o(&folder(rel).join(format!("{r}.g2o")), UnknownTags::Skip).unwrap();
+        let Graph::Se3(g) = file.graph else {
+            panic!("3-D expected")
+        };
+        for (i, (&k, p)) in g.keys().iter().zip(g.poses()).enumerate() {
+            if file.has_vertex[i] || merged.index_of(k).is_none() {
+                merged.add_pose(k, *p);
+            }
+        }
+        for e in &g.edges {
+            let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
+            if seen.insert((a, b)) {
+                let (i, j) = (merged.index_of(a).unwrap(), merged.index_of(b).unwrap());
+                merged.add_edge(i, j, e.measured, e.information);
+            }
+        }
+    }
+    merged
+}
+
+/// Labelled inliers as unordered (robot, index) pairs.
+fn labelled_inliers(rel: &str) -> (BTreeSet<[(u8, u64); 2]>, usize) {
+    let text = std::fs::read_to_string(folder(rel).join("inter_robot_labels.txt")).unwrap();
+    let mut inliers = BTreeSet::new();
+    let mut total = 0;
+    for line in text
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+    {
+        let f: Vec<&str> = line.split_whitespace().collect();
+        total += 1;
+        if f[6] == "1" {
+            let a = (f[2].as_bytes()[0] - b'a', f[3].parse().unwrap());
+            let b = (f[4].as_bytes()[0] - b'a', f[5].parse().unwrap());
+            inliers.insert(if a <= b { [a, b] } else { [b, a] });
+        }
+    }
+    (inliers, total)
+}
+
+fn as_label(k: u64) -> (u8, u64) {
+    (key::robot(k).unwrap(), key::index(k))
+}
+
+#[test]
+fn pcm_keeps_exactly_the_labelled_inliers() {
+    // (folder, robots, expected clique size from the upstream unit tests)
+    for (rel, robots, expected) in [
+        ("clean/example_2robots", 2, 10),
+        ("spoiled/example_2robots", 2, 10),
+        ("spoiled_not_in_order/example_2robots", 2, 10),
+        ("spoiled/example_4robots", 4, 24),
+    ] {
+        let graph = load(rel, robots);
+        let (truth, total) = labelled_inliers(rel);
+        let mut pcm = Pcm::new(0.99, Scope::InterRobot).unwrap();
+        let s = pcm.run(&graph).unwrap();
+        assert_eq!(s.closures, total, "{rel}");
+        assert!(s.exact);
+        assert_eq!(s.clique_size, expected, "{rel}");
+        let kept: BTreeSet<[(u8, u64); 2]> = s
+            .inliers
+            .iter()
+            .map(|&(a, b)| {
+                let (a, b) = (as_label(a), as_label(b));
+                if a <= b {
+                    [a, b]
+                } else {
+                    [b, a]
+                }
+            })
+            .collect();
+        assert_eq!(
+            kept, truth,
+            "{rel}: kept closures differ from the labelled inliers"
+        );
+    }
+}
+
+#[test]
+fn a_consistent_pair_passes_and_a_perturbed_one_fails() {
+    let graph = load("clean/example_2robots", 2);
+    let odo = Odometry::from_graph(&graph).unwrap();
+    let keys = graph.keys();
+    let closures: Vec<Closure> = graph
+        .edges
+        .iter()
+        .filter(|e| key::robot(keys[e.i]) != key::robot(keys[e.j]))
+        .map(|e| Closure {
+            u: keys[e.i],
+            v: keys[e.j],
+            measured: e.measured,
+            covariance: e.information.cholesky().unwrap().inverse(),
+        })
+        .collect();
+    let d2 = pairwise_mahalanobis2(&odo, &closures[0], &closures[1]).unwrap();
+    assert!(d2 < 16.81, "two inliers: d² = {d2}");
+    // The same pair seen from the other side gives the same distance, up to the
+    // first-order propagation (linearized at different points: measured 3e-4 relative).
+    let d2r =
+        pairwise_mahalanobis2(&odo, &closures[0].reversed(), &closures[1].reversed()).unwrap();
+    assert!((d2r - d2).abs() < 1e-2 * d2.max(1.0), "{d2r} vs {d2}");
+    // Turning one closure by 0.3 rad (20 odometry steps of σ_R = 0.01 explain ~0.05 rad)
+    // makes the pair inconsistent.
+    let mut bad = closures[1].clone();
+    bad.measured.rotation =
+        nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, 0.3) * bad.measured.rotation;
+    let d2 = pairwise_mahalanobis2(&odo, &closures[0], &bad).unwrap();
+    assert!(d2 > 16.81, "perturbed pair: d² = {d2}");
+}
+
+#[test]
+fn incremental_pcm_equals_batch() {
+    let graph = load("spoiled_not_in_order/example_2robots", 2);
+    let mut batch = Pcm::new(0.99, Scope::InterRobot).unwrap();
+    let batch = batch.run(&graph).unwrap();
+    // Same graph with only the first half of the inter-robot edges, then all of them.
+    let keys = graph.keys().to_vec();
+    let inter: Vec<usize> = (0..graph.edges.len())
+        .filter(|&n| key::robot(keys[graph.edges[n].i]) != key::robot(keys[graph.edges[n].j]))
+        .collect();
+    let mut partial = graph.clone();
+    let drop: BTreeSet<usize> = inter[inter.len() / 2..].iter().copied().collect();
+    partial.edges = graph
+        .edges
+        .iter()
+        .enumerate()
+        .filter(|(n, _)| !drop.contains(n))
+        .map(|(_, e)| e.clone())
+        .collect();
+    let mut incremental = Pcm::new(0.99, Scope::InterRobot).unwrap();
+    let first = incremental.run(&partial).unwrap();
+    assert_eq!(first.closures, inter.len() / 2);
+    let second = incremental.run(&graph).unwrap();
+    assert_eq!(
+        second.closures, batch.closures,
+        "old closures must not be added twice"
+    );
+    assert_eq!(second.clique_size, batch.clique_size);
+    assert_eq!(second.consistent_pairs, batch.consistent_pairs);
+}
+
+#[test]
+fn bad_thresholds_and_graphs_without_candidates_are_clear_errors() {
+    for p in [0.0, 1.0, -0.5, 1.5, f64::NAN] {
+        assert!(
+            matches!(Pcm::new(p, Scope::InterRobot), Err(PcmError::Threshold(_))),
+            "{p}"
+        );
+    }
+    let Graph::Se3(single) = read_g2o(
+        &PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("../../../shared/data/pose_graphs/se-sync/tinyGrid3D.g2o"),
+        UnknownTags::Error,
+    )
+    .unwrap()
+    .graph
+    else {
+        panic!()
+    };
+    let err = Pcm::new(0.99, Scope::InterRobot)
+        .unwrap()
+        .run(&single)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("no inter-robot edges") && err.contains("--intra"),
+        "{err}"
+    );
+    // The same single-robot graph has intra-robot loop closures to check.
+    let s = Pcm::new(0.99, Scope::IntraRobot)
+        .unwrap()
+        .run(&single)
+        .unwrap();
+    assert!(s.closures > 0 && s.clique_size > 0);
+}
