@@ -7,13 +7,90 @@ use doorslam_camera::CameraConfig;
 use serde::Deserialize;
 
 /// The whole file. Unknown sections or keys are errors: a typo must not be silently ignored.
-#[derive(Debug, Clone, Default, PartialEq, Eq, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RobotConfig {
     #[serde(default)]
     pub robot: RobotSection,
     #[serde(default)]
     pub camera: CameraConfig,
+    #[serde(default)]
+    pub backend: BackendSection,
+    #[serde(default)]
+    pub sim_keyframes: SimKeyframesSection,
+    #[serde(default)]
+    pub up: UpSection,
+}
+
+/// `[backend]`.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BackendSection {
+    /// Where the back-end keeps its journal (`<state_dir>/<robot id>/backend.journal`).
+    #[serde(default = "default_state_dir")]
+    pub state_dir: PathBuf,
+    /// Re-optimize after this many new keyframes.
+    #[serde(default = "default_optimize_every")]
+    pub optimize_every: usize,
+}
+
+fn default_state_dir() -> PathBuf {
+    PathBuf::from("/var/lib/doorslam")
+}
+fn default_optimize_every() -> usize {
+    10
+}
+
+impl Default for BackendSection {
+    fn default() -> Self {
+        Self {
+            state_dir: default_state_dir(),
+            optimize_every: default_optimize_every(),
+        }
+    }
+}
+
+/// `[sim_keyframes]`: the simulation stand-in for the front-end (never visual odometry).
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimKeyframesSection {
+    /// Make a keyframe of every frame whose sequence number is a multiple of this.
+    #[serde(default = "default_every")]
+    pub every: u64,
+}
+
+fn default_every() -> u64 {
+    5
+}
+
+impl Default for SimKeyframesSection {
+    fn default() -> Self {
+        Self {
+            every: default_every(),
+        }
+    }
+}
+
+/// `[up]`: which services `doorslam up` starts, in this order.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct UpSection {
+    #[serde(default = "default_services")]
+    pub services: Vec<String>,
+}
+
+fn default_services() -> Vec<String> {
+    ["backend", "sim-keyframes", "camera"]
+        .map(String::from)
+        .to_vec()
+}
+
+impl Default for UpSection {
+    fn default() -> Self {
+        Self {
+            services: default_services(),
+        }
+    }
 }
 
 /// `[robot]`: identity of this robot in the team.
@@ -23,6 +100,9 @@ pub struct RobotSection {
     /// Stable robot id: lowercase letters, digits, `_` or `-` (used in service and key names).
     #[serde(default = "default_id")]
     pub id: String,
+    /// Index in the team (0 = 'a' in multi-robot keys), below 26.
+    #[serde(default)]
+    pub index: u32,
 }
 
 fn default_id() -> String {
@@ -31,7 +111,10 @@ fn default_id() -> String {
 
 impl Default for RobotSection {
     fn default() -> Self {
-        Self { id: default_id() }
+        Self {
+            id: default_id(),
+            index: 0,
+        }
     }
 }
 
@@ -66,7 +149,27 @@ impl RobotConfig {
         if !ok {
             bail!("robot.id = {id:?}: use 1-32 characters of [a-z0-9_-]");
         }
+        if self.robot.index >= 26 {
+            bail!(
+                "robot.index = {}: must be below 26 (keys use 'a' + index)",
+                self.robot.index
+            );
+        }
         self.camera.validate()?;
+        if self.backend.optimize_every == 0 {
+            bail!("backend.optimize_every must be >= 1");
+        }
+        if self.sim_keyframes.every == 0 {
+            bail!("sim_keyframes.every must be >= 1");
+        }
+        for s in &self.up.services {
+            if crate::cli::service_names().iter().all(|n| n != s) {
+                bail!(
+                    "up.services: unknown service {s:?} (known: {})",
+                    crate::cli::service_names().join(", ")
+                );
+            }
+        }
         Ok(())
     }
 }

@@ -6,10 +6,7 @@ use std::process::{Command, Output};
 fn doorslam(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_doorslam"))
         .args(args)
-        .env(
-            "DOORSLAM_DATA",
-            concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data"),
-        )
+        .env("DOORSLAM_DATA", concat!(".", "/../shared/data"))
         .output()
         .expect("run doorslam")
 }
@@ -38,12 +35,10 @@ fn help_lists_every_subcommand() {
 #[test]
 fn unfinished_commands_fail_clearly_without_panicking() {
     let pending = [
-        (vec!["up"], "#11"),
         (vec!["dpgo"], "distributed back-end"),
         (vec!["sim", "world"], "#6"),
         (vec!["replay", "dir"], "#6"),
         (vec!["bw"], "team-link"),
-        (vec!["service", "backend"], "#11"),
         (vec!["service", "frontend"], "front-end"),
         (vec!["service", "place-recognition"], "place-recognition"),
         (vec!["service", "team"], "team-link"),
@@ -118,7 +113,7 @@ fn config_errors_name_the_file_and_the_key() {
 
 #[test]
 fn example_robot_config_is_valid() {
-    let cfg = concat!(env!("CARGO_MANIFEST_DIR"), "/deploy/robot.toml");
+    let cfg = concat!(".", "/deploy/robot.toml");
     let text = std::fs::read_to_string(cfg).unwrap();
     let parsed: doorslam::config::RobotConfig = toml::from_str(&text).unwrap();
     parsed.validate().unwrap();
@@ -141,7 +136,7 @@ fn demo_checks_the_whole_stack_on_real_data() {
 }
 
 fn data(rel: &str) -> String {
-    format!("{}/../shared/data/{rel}", env!("CARGO_MANIFEST_DIR"))
+    format!("{}/../shared/data/{rel}", ".")
 }
 
 #[test]

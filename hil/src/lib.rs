@@ -1,6 +1,53 @@
 //! # doorslam-hil
 //!
-//! Hardware-in-the-loop and simulation: dataset replay into the iceoryx2 pipeline, the
-//! synthetic stereo world renderer, multi-drone flights and the multi-robot pose-graph
-//! simulator (issues "HIL/simulation" and "PCM"). Nothing has landed here yet; the
-//! crate exists so the workspace layout and the `doorslam sim|replay` wiring are fixed.
+//! Hardware-in-the-loop and simulation. Landed so far: the synthetic stereo world
+//! renderer (below, issue "HIL/simulation") and [`posegraph_sim`], the multi-robot
+//! pose-graph simulator.
+//!
+//! ## Synthetic stereo world
+//!
+//! * [`World`]: a town of textured primitives — the ground plane z = 0 (streets, sidewalks,
+//!   lawns, plazas) and axis-aligned box buildings whose facades carry window grids
+//!   where every window differs (plenty of distinct ORB/GFTT corners). Some designs are
+//!   built several times with identical size and textures, so different places look the
+//!   same (perceptual aliasing, what place recognition and PCM must survive).
+//!   [`World::town`] builds the default 200 m × 200 m scene from a seed, deterministically.
+//! * [`StereoCamera`]: rectified pinhole pair, presets [`StereoCamera::euroc_like`] and
+//!   [`StereoCamera::kitti_like`]; poses are camera-to-world `Isometry3<f64>` of the
+//!   left camera, camera frame x right, y down, z forward; world frame z up.
+//! * [`render_stereo`]: ray casting (parallel over rows) into left/right 8-bit images and
+//!   the left camera's z-depth (`f32::INFINITY` on sky).
+//!
+//! A surface point's intensity is a pure function of the point (its face's texture at
+//! its (u, v)), so it is the same from every viewpoint: [`World::texture_at`] gives it.
+//! Rendering filters texture detail finer than a pixel instead of supersampling.
+//!
+//! Figures (`hil/docs/stereo_pair.png`, `hil/docs/aliasing.png`) come from
+//! `cargo run --release -p doorslam-hil --example render_pair`; the throughput is printed
+//! by `cargo test --release -p doorslam-hil --test render throughput -- --nocapture`.
+
+mod camera;
+mod cull;
+mod error;
+mod geometry;
+mod image;
+mod noise;
+pub mod posegraph_sim;
+mod render;
+pub mod replay;
+mod rng;
+pub mod sim_keyframes;
+mod texture;
+mod town;
+mod world;
+
+pub use camera::{look_at, StereoCamera};
+pub use error::HilError;
+pub use geometry::{Aabb, Face, Ray, NEAR};
+pub use image::{DepthMap, GrayImage};
+pub use render::{render_stereo, render_view, StereoPair};
+pub use texture::{sky_intensity, FacadeStyle, GroundStyle, RoofStyle, Texture, TextureId};
+pub use town::{
+    BUILDINGS, COPIES_PER_DESIGN, LOTS, REPEATED_DESIGNS, SIDEWALK_WIDTH, STREET_WIDTH, TOWN_SIZE,
+};
+pub use world::{light, Building, BuildingStyle, Hit, Primitive, SurfacePoint, World};

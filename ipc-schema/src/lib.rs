@@ -9,17 +9,29 @@
 //! - [`service`]: service names per robot (`doorslam/<robot>/<topic>`), opening the
 //!   services with the settings every process must agree on, and stale-resource cleanup.
 //!
+//! - [`channel`]: typed senders/receivers with event notification and the back-pressure
+//!   policy (frames lossy, everything else reliable).
+//!
+//! - [`channel`]: typed senders/receivers with event notification and the back-pressure
+//!   policy (frames lossy, everything else reliable).
+//!
 //! Inter-robot wire messages (Zenoh) will live in `wire/` beside these.
 
+pub mod channel;
+pub mod lifecycle;
 pub mod service;
 pub mod shm;
 
+pub use channel::{Receiver, Sender, RELIABLE_BUFFER};
+pub use lifecycle::{sd_notify, Lifecycle};
 pub use service::{
     cleanup_dead_nodes, create_node, open_frames, service_name, FramePublisher, FrameSubscriber,
     IpcError, Topic,
 };
 pub use shm::{
-    FrameError, FrameHeader, StereoFrame, MAX_FRAME_HEIGHT, MAX_FRAME_PIXELS, MAX_FRAME_WIDTH,
+    Feature, FrameError, FrameHeader, Keyframe, KeyframeSource, LoopClosure, OdometryEdge,
+    PlaceDescriptor, PoseEstimate, StereoFrame, FRAME_HAS_TRUTH, MAX_DESCRIPTOR_DIM,
+    MAX_FRAME_HEIGHT, MAX_FRAME_PIXELS, MAX_FRAME_WIDTH, MAX_KEYFRAME_FEATURES, SCHEMA_VERSION,
 };
 
 /// Re-exported so service crates use the exact iceoryx2 this schema was built against.

@@ -17,19 +17,38 @@ pub enum IpcError {
     Node(String),
     #[error("iceoryx2 service {service:?}: {reason}")]
     Service { service: String, reason: String },
+    #[error("iceoryx2 service {service:?} was created by a process built with another doorslam-ipc schema (this build: v{}); restart all services of the robot from the same build", crate::shm::SCHEMA_VERSION)]
+    SchemaMismatch { service: String },
+    #[error("iceoryx2 service {service:?}: could not fill the sample: {reason}")]
+    Payload { service: String, reason: String },
 }
 
 /// The topics one robot publishes internally.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Topic {
     Frames,
+    Keyframes,
+    Odometry,
+    Descriptors,
+    Closures,
+    Estimates,
 }
 
 impl Topic {
     fn as_str(self) -> &'static str {
         match self {
             Topic::Frames => "frames",
+            Topic::Keyframes => "keyframes",
+            Topic::Odometry => "odometry",
+            Topic::Descriptors => "descriptors",
+            Topic::Closures => "closures",
+            Topic::Estimates => "estimates",
         }
+    }
+
+    /// Whether a slow consumer may lose samples (only camera frames: newest wins).
+    pub fn lossy(self) -> bool {
+        matches!(self, Topic::Frames)
     }
 }
 
@@ -41,30 +60,15 @@ pub fn service_name(robot: &str, topic: Topic) -> String {
 
 /// Opens (or creates) the stereo-frame service of `robot`.
 ///
-/// Every process must agree on these settings, so they are set in one place:
+/// Every process must agree on these settings (the same as [`crate::channel`] uses for
+/// [`Topic::Frames`]), so they are set in one place:
 /// frames are the one stream where the newest data wins, hence `safe_overflow`
 /// (a slow subscriber loses its oldest frame, the camera never blocks).
 pub fn open_frames(
     node: &Node<ipc::Service>,
     robot: &str,
 ) -> Result<PortFactory<ipc::Service, StereoFrame, ()>, IpcError> {
-    let name = service_name(robot, Topic::Frames);
-    let service_name: ServiceName = name.as_str().try_into().map_err(|e| IpcError::Name {
-        name: name.clone(),
-        reason: format!("{e:?}"),
-    })?;
-    node.service_builder(&service_name)
-        .publish_subscribe::<StereoFrame>()
-        .enable_safe_overflow(true)
-        .subscriber_max_buffer_size(2)
-        .history_size(0)
-        .max_publishers(1)
-        .max_subscribers(8)
-        .open_or_create()
-        .map_err(|e| IpcError::Service {
-            service: name,
-            reason: format!("{e:?}"),
-        })
+    crate::channel::open::<StereoFrame>(node, robot, Topic::Frames).map(|(_, pubsub, _)| pubsub)
 }
 
 /// Creates a node, named after the process's role, after removing the shared memory

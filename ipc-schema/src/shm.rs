@@ -14,10 +14,18 @@ pub const MAX_FRAME_HEIGHT: usize = 720;
 /// Bytes of one 8-bit grayscale image at the maximum resolution.
 pub const MAX_FRAME_PIXELS: usize = MAX_FRAME_WIDTH * MAX_FRAME_HEIGHT;
 
+/// Version of the shared-memory layout. It is part of every type name registered with
+/// iceoryx2, so a process built against another layout cannot open the services: iceoryx2
+/// refuses the mismatched type and [`crate::IpcError::SchemaMismatch`] says so.
+pub const SCHEMA_VERSION: u32 = 1;
+
+/// `FrameHeader::flags` bit: `truth_pose` holds the ground-truth pose (replay/simulation).
+pub const FRAME_HAS_TRUTH: u32 = 1;
+
 /// Metadata stamped on every frame by the camera (or replay) service.
 #[repr(C)]
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
-#[type_name("doorslam::FrameHeader")]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("doorslam::v1::FrameHeader")]
 pub struct FrameHeader {
     /// Sequence number, strictly increasing per camera, starting at 0.
     pub seq: u64,
@@ -31,6 +39,12 @@ pub struct FrameHeader {
     pub width: u32,
     /// Image height in pixels (<= [`MAX_FRAME_HEIGHT`]).
     pub height: u32,
+    /// Bit set of `FRAME_*` flags.
+    pub flags: u32,
+    pub reserved: u32,
+    /// Ground-truth pose of the left camera in the world (x y z qx qy qz qw), valid when
+    /// `flags & FRAME_HAS_TRUTH`: datasets and simulation carry it, cameras do not.
+    pub truth_pose: [f64; 7],
 }
 
 /// A rectified grayscale stereo pair, both images in one shared-memory sample.
@@ -41,7 +55,7 @@ pub struct FrameHeader {
 /// guarantees that the bytes the accessors expose were written.
 #[repr(C)]
 #[derive(ZeroCopySend)]
-#[type_name("doorslam::StereoFrame")]
+#[type_name("doorslam::v1::StereoFrame")]
 pub struct StereoFrame {
     header: FrameHeader,
     left: [MaybeUninit<u8>; MAX_FRAME_PIXELS],
@@ -49,8 +63,8 @@ pub struct StereoFrame {
 }
 
 // The layout is part of the contract between processes built separately.
-const _: () = assert!(core::mem::size_of::<FrameHeader>() == 32);
-const _: () = assert!(core::mem::size_of::<StereoFrame>() == 32 + 2 * MAX_FRAME_PIXELS);
+const _: () = assert!(core::mem::size_of::<FrameHeader>() == 96);
+const _: () = assert!(core::mem::size_of::<StereoFrame>() == 96 + 2 * MAX_FRAME_PIXELS);
 
 /// A frame that does not fit the compile-time maxima or whose images disagree with it.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -146,3 +160,105 @@ impl StereoFrame {
         Ok(unsafe { core::slice::from_raw_parts(self.right.as_ptr() as *const u8, n) })
     }
 }
+
+/// Most features a keyframe carries.
+pub const MAX_KEYFRAME_FEATURES: usize = 1000;
+/// Largest global place descriptor (floats).
+pub const MAX_DESCRIPTOR_DIM: usize = 4096;
+
+/// Where a keyframe comes from. Simulated keyframes are never visual odometry.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u32)]
+pub enum KeyframeSource {
+    VisualOdometry = 0,
+    /// Ground-truth poses forwarded from a dataset or simulation (no VO involved).
+    SimulatedTruth = 1,
+}
+
+/// One feature of a keyframe: pixel, 3-D point in the camera frame, ORB descriptor.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("doorslam::v1::Feature")]
+pub struct Feature {
+    pub uv: [f32; 2],
+    pub point: [f32; 3],
+    pub descriptor: [u8; 32],
+}
+
+/// A keyframe: pose estimate and features. `source` is a [`KeyframeSource`] value.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("doorslam::v1::Keyframe")]
+pub struct Keyframe {
+    pub robot: u32,
+    pub source: u32,
+    /// Keyframe index on this robot, consecutive from 0.
+    pub id: u64,
+    /// Sequence number of the frame it was made from.
+    pub frame_seq: u64,
+    pub stamp_ns: u64,
+    /// World pose estimate (x y z qx qy qz qw).
+    pub pose: [f64; 7],
+    pub n_features: u32,
+    pub reserved: u32,
+    pub features: [Feature; MAX_KEYFRAME_FEATURES],
+}
+
+/// Relative pose between two keyframes of one robot, information rotation-first
+/// (upper triangle, row-major, 21 values).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("doorslam::v1::OdometryEdge")]
+pub struct OdometryEdge {
+    pub robot: u32,
+    pub reserved: u32,
+    pub from: u64,
+    pub to: u64,
+    pub stamp_ns: u64,
+    /// `X_from⁻¹ X_to` (x y z qx qy qz qw).
+    pub relative: [f64; 7],
+    pub information: [f64; 21],
+}
+
+/// Global place descriptor of a keyframe (`dim` leading values used).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("doorslam::v1::PlaceDescriptor")]
+pub struct PlaceDescriptor {
+    pub robot: u32,
+    pub dim: u32,
+    pub keyframe: u64,
+    pub values: [f32; MAX_DESCRIPTOR_DIM],
+}
+
+/// A verified loop closure between keyframes (of one robot or two).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("doorslam::v1::LoopClosure")]
+pub struct LoopClosure {
+    pub robot_a: u32,
+    pub robot_b: u32,
+    pub keyframe_a: u64,
+    pub keyframe_b: u64,
+    pub relative: [f64; 7],
+    pub information: [f64; 21],
+    /// PnP-RANSAC inliers that supported it.
+    pub inliers: u32,
+    pub reserved: u32,
+}
+
+/// The back-end's current estimate of one keyframe pose.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("doorslam::v1::PoseEstimate")]
+pub struct PoseEstimate {
+    pub robot: u32,
+    pub reserved: u32,
+    pub keyframe: u64,
+    pub stamp_ns: u64,
+    pub pose: [f64; 7],
+}
+
+const _: () = assert!(core::mem::size_of::<Feature>() == 52);
+const _: () = assert!(core::mem::size_of::<Keyframe>() == 96 + 52 * MAX_KEYFRAME_FEATURES);
+const _: () = assert!(core::mem::size_of::<OdometryEdge>() == 32 + 8 * 28);

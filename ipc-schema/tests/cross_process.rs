@@ -37,6 +37,7 @@ fn publish(robot: &str) {
             camera: 0,
             width: W,
             height: H,
+            ..Default::default()
         };
         StereoFrame::write(
             sample.payload_mut(),

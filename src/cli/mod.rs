@@ -1,11 +1,13 @@
 //! Subcommands, one file each.
 
+mod bench;
 mod demo;
 mod eval;
 mod pcm;
 mod pending;
 mod pgo;
 mod service;
+mod up;
 
 use std::process::ExitCode;
 
@@ -24,7 +26,7 @@ pub enum Command {
     /// Run one on-robot service process (what a systemd unit starts).
     Service(service::ServiceArgs),
     /// Start all services of one robot as child processes.
-    Up(pending::PendingArgs),
+    Up(up::UpArgs),
     /// Optimize a pose graph (g2o): Gauss-Newton / Levenberg-Marquardt.
     Pgo(pgo::PgoArgs),
     /// Reject outlier loop closures with PCM (pairwise consistency + maximum clique).
@@ -41,6 +43,17 @@ pub enum Command {
     Bw(pending::PendingArgs),
     /// Run the demo (today: a check of the whole dependency stack on real data).
     Demo(demo::DemoArgs),
+    /// Measure the on-robot transports (iceoryx2, Zenoh shared memory, Unix socket).
+    Bench(bench::BenchArgs),
+}
+
+/// Names of the on-robot services, as `doorslam service NAME` spells them.
+pub fn service_names() -> Vec<String> {
+    use clap::ValueEnum;
+    service::ServiceName::value_variants()
+        .iter()
+        .filter_map(|v| v.to_possible_value().map(|p| p.get_name().to_string()))
+        .collect()
 }
 
 /// Parses the command line, runs the subcommand, prints the whole error chain on failure.
@@ -49,7 +62,7 @@ pub fn main() -> ExitCode {
     init_logging();
     let result = match cli.command {
         Command::Service(args) => service::run(args),
-        Command::Up(args) => pending::fail("up", "the on-robot pipeline issue (#11)", &args),
+        Command::Up(args) => up::run(args),
         Command::Pgo(args) => pgo::run(args),
         Command::Pcm(args) => pcm::run(args),
         Command::Dpgo(args) => {
@@ -60,6 +73,7 @@ pub fn main() -> ExitCode {
         Command::Replay(args) => pending::fail("replay", "the HIL/simulation issue (#6)", &args),
         Command::Bw(args) => pending::fail("bw", "the team-link issue (next wave)", &args),
         Command::Demo(args) => demo::run(args),
+        Command::Bench(args) => bench::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -74,9 +88,12 @@ pub fn main() -> ExitCode {
 fn init_logging() {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
+    // Colours only on a terminal: `up` and systemd read these lines from pipes.
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        .with_ansi(ansi)
         .try_init();
 }
 

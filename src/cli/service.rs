@@ -14,6 +14,8 @@ pub enum ServiceName {
     PlaceRecognition,
     Backend,
     Team,
+    /// Simulation stand-in for the front-end: ground-truth keyframes (not VO).
+    SimKeyframes,
 }
 
 #[derive(Debug, Args)]
@@ -29,16 +31,36 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let config = RobotConfig::load_or_default(args.config.as_ref())?;
     tracing::info!(robot = %config.robot.id, service = ?args.name, "starting service");
     match args.name {
-        ServiceName::Camera => Ok(doorslam_camera::run(&config.camera)?),
+        ServiceName::Camera => Ok(doorslam_camera::run(
+            &config.camera,
+            &config.robot.id,
+            config.robot.index,
+        )?),
+        ServiceName::SimKeyframes => {
+            let c = doorslam_hil::sim_keyframes::SimKeyframesConfig {
+                robot: config.robot.id.clone(),
+                robot_index: config.robot.index,
+                every: config.sim_keyframes.every,
+            };
+            doorslam_hil::sim_keyframes::run(&c)?;
+            Ok(())
+        }
         ServiceName::Frontend => bail!(
             "service frontend is not built yet: it arrives with the front-end VO issue (next wave)"
         ),
         ServiceName::PlaceRecognition => {
             bail!("service place-recognition is not built yet: it arrives with the place-recognition issue (next wave)")
         }
-        ServiceName::Backend => bail!(
-            "service backend is not built yet: it arrives with the on-robot pipeline issue (#11)"
-        ),
+        ServiceName::Backend => {
+            let c = doorslam_backend::service::BackendConfig {
+                robot: config.robot.id.clone(),
+                robot_index: config.robot.index,
+                state_dir: config.backend.state_dir.join(&config.robot.id),
+                optimize_every: config.backend.optimize_every,
+            };
+            doorslam_backend::service::run(&c)?;
+            Ok(())
+        }
         ServiceName::Team => {
             bail!("service team is not built yet: it arrives with the team-link issue (next wave)")
         }

@@ -17,10 +17,12 @@ pub mod eval;
 pub mod g2o;
 pub mod graph;
 pub mod init;
+pub mod journal;
 pub mod lie;
 pub mod linear;
 pub mod outliers;
 pub mod robust;
+pub mod service;
 pub mod solver;
 pub mod sparsity;
 

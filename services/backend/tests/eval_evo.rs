@@ -18,7 +18,7 @@ use proptest::prelude::*;
 fn data_dir() -> PathBuf {
     match std::env::var_os("DOORSLAM_DATA") {
         Some(dir) => PathBuf::from(dir),
-        None => PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/data")),
+        None => PathBuf::from(concat!(".", "/../../../shared/data")),
     }
 }
 

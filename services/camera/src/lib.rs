@@ -8,6 +8,8 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+pub mod replay;
+
 /// Failures of the camera service.
 #[derive(Debug, thiserror::Error)]
 pub enum CameraError {
@@ -19,12 +21,60 @@ pub enum CameraError {
     Device { path: PathBuf, reason: String },
     #[error("capture from {path} is not built yet: it arrives with the on-robot pipeline issue (#11); use `doorslam replay` meanwhile")]
     CaptureNotBuilt { path: PathBuf },
+    #[error("replay: {0}")]
+    Replay(#[from] doorslam_hil::replay::ReplayError),
+    #[error(transparent)]
+    Ipc(#[from] doorslam_ipc::IpcError),
+}
+
+/// Where frames come from.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CameraSource {
+    /// A v4l2 stereo camera.
+    #[default]
+    V4l,
+    /// A dataset folder played into the pipeline ([`ReplayConfig`]).
+    Replay,
+}
+
+/// `[camera.replay]`: dataset replay (hardware-in-the-loop without the camera).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReplayConfig {
+    /// KITTI (`image_0/`, `image_1/`, `times.txt`) or EuRoC (`[mav0/]cam0/data`, `cam1/data`) folder.
+    pub path: PathBuf,
+    /// Playback speed: 1 = real time, 2 = twice as fast, 0 = as fast as possible.
+    #[serde(default = "default_rate")]
+    pub rate: f64,
+    /// Ground-truth poses (KITTI format), if not `poses.txt` inside the folder.
+    #[serde(default)]
+    pub truth: Option<PathBuf>,
+    /// `[k, n]`: play only part k of n equal consecutive parts (one sequence, n robots).
+    #[serde(default)]
+    pub split: Option<[usize; 2]>,
+    /// Wait up to this long for a first subscriber before playing (frames are lossy).
+    #[serde(default = "default_wait")]
+    pub wait_for_subscribers_s: f64,
+}
+
+fn default_rate() -> f64 {
+    1.0
+}
+fn default_wait() -> f64 {
+    10.0
 }
 
 /// `[camera]` section of `robot.toml`.
-#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CameraConfig {
+    /// `v4l` (default) or `replay`.
+    #[serde(default)]
+    pub source: CameraSource,
+    /// Settings of `source = "replay"`.
+    #[serde(default)]
+    pub replay: Option<ReplayConfig>,
     /// Left camera device, or the one side-by-side stereo device.
     #[serde(default = "default_left")]
     pub left: PathBuf,
@@ -58,6 +108,8 @@ fn default_fps() -> u32 {
 impl Default for CameraConfig {
     fn default() -> Self {
         Self {
+            source: CameraSource::V4l,
+            replay: None,
             left: default_left(),
             right: None,
             width: default_width(),
@@ -87,6 +139,28 @@ impl CameraConfig {
                 "camera.fps = {}, must be within 1..200",
                 self.fps
             )));
+        }
+        match (&self.source, &self.replay) {
+            (CameraSource::Replay, None) => {
+                return Err(CameraError::Config(
+                    "camera.source = \"replay\" needs a [camera.replay] section with a path".into(),
+                ))
+            }
+            (_, Some(r)) if !(r.rate.is_finite() && r.rate >= 0.0) => {
+                return Err(CameraError::Config(format!(
+                    "camera.replay.rate = {}, must be >= 0 (0 = as fast as possible)",
+                    r.rate
+                )))
+            }
+            (_, Some(r))
+                if !(r.wait_for_subscribers_s.is_finite() && r.wait_for_subscribers_s >= 0.0) =>
+            {
+                return Err(CameraError::Config(format!(
+                    "camera.replay.wait_for_subscribers_s = {}, must be >= 0",
+                    r.wait_for_subscribers_s
+                )))
+            }
+            _ => {}
         }
         Ok(())
     }
@@ -140,8 +214,13 @@ pub fn open_devices(config: &CameraConfig) -> Result<Vec<v4l::Device>, CameraErr
         .collect()
 }
 
-/// Runs the camera service: opens the devices, then captures into the frame service.
-pub fn run(config: &CameraConfig) -> Result<(), CameraError> {
+/// Runs the camera service for robot `robot`: replays a dataset, or opens the devices and
+/// captures into the frame service.
+pub fn run(config: &CameraConfig, robot: &str, robot_index: u32) -> Result<(), CameraError> {
+    config.validate()?;
+    if let (CameraSource::Replay, Some(replay)) = (config.source, &config.replay) {
+        return replay::run(replay, robot, robot_index).map(|_| ());
+    }
     let devices = open_devices(config)?;
     for dev in &devices {
         let caps = dev.query_caps().map_err(|e| CameraError::Device {

@@ -1,5 +1,7 @@
 //! OpenCV feature detection on real stereo images from ../shared/data/stereo.
 
+// Paths are relative to the package root, the working directory cargo runs tests in (a
+// compile-time CARGO_MANIFEST_DIR goes stale when one target dir serves several clones).
 use std::path::PathBuf;
 
 use doorslam_frontend::{detect_gftt, detect_orb, load_gray};
@@ -8,7 +10,7 @@ use opencv::prelude::*;
 fn data(rel: &str) -> PathBuf {
     let root = std::env::var_os("DOORSLAM_DATA")
         .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data"));
+        .unwrap_or_else(|| PathBuf::from(".").join("../../../shared/data"));
     let p = root.join(rel);
     assert!(
         p.is_file(),

@@ -1,0 +1,342 @@
+//! Datasets on disk, read frame by frame for replay into the on-robot pipeline.
+//!
+//! Layouts:
+//! - **KITTI odometry**: `image_0/NNNNNN.png` (left), `image_1/NNNNNN.png` (right),
+//!   `times.txt` (seconds, one line per frame), optional ground truth `poses.txt` (KITTI
+//!   pose format, one line per frame; KITTI ships it separately as `poses/XX.txt`: point
+//!   [`Dataset::with_truth`] at it).
+//! - **EuRoC ASL**: `mav0/cam0/data/<ns>.png` and `mav0/cam1/data/<ns>.png` (the `mav0/`
+//!   level is optional), timestamps from the file names. No ground truth is attached (it
+//!   is the body frame, not the camera's).
+//!
+//! [`Dataset::split`] keeps one of N consecutive parts, as in the paper's KITTI 00
+//! experiment where one sequence plays the role of several robots.
+
+use std::path::{Path, PathBuf};
+
+use nalgebra::Isometry3;
+
+/// Failures of reading a dataset; each names the file or folder.
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayError {
+    #[error("{path}: {msg}")]
+    Layout { path: PathBuf, msg: String },
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: cannot decode PNG: {msg}")]
+    Png { path: PathBuf, msg: String },
+    #[error("{path}:{line}: {msg}")]
+    Line {
+        path: PathBuf,
+        line: usize,
+        msg: String,
+    },
+}
+
+/// Which on-disk layout a dataset uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Layout {
+    Kitti,
+    Euroc,
+}
+
+/// One stereo frame on disk.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameFiles {
+    pub left: PathBuf,
+    pub right: PathBuf,
+    pub stamp_ns: u64,
+    /// Index in the full sequence (kept through [`Dataset::split`]).
+    pub index: usize,
+}
+
+/// A decoded stereo pair.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Pair {
+    pub width: u32,
+    pub height: u32,
+    pub left: Vec<u8>,
+    pub right: Vec<u8>,
+}
+
+/// A dataset folder.
+#[derive(Debug, Clone)]
+pub struct Dataset {
+    pub root: PathBuf,
+    pub layout: Layout,
+    pub frames: Vec<FrameFiles>,
+    /// Ground-truth left-camera pose per frame of `frames`, when known.
+    pub truth: Option<Vec<Isometry3<f64>>>,
+}
+
+fn io(path: &Path) -> impl Fn(std::io::Error) -> ReplayError + '_ {
+    move |source| ReplayError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+fn pngs(dir: &Path) -> Result<Vec<PathBuf>, ReplayError> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(io(dir))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e.eq_ignore_ascii_case("png")))
+        .collect();
+    files.sort();
+    Ok(files)
+}
+
+impl Dataset {
+    /// Opens a KITTI or EuRoC folder (detected from its contents).
+    pub fn open(root: &Path) -> Result<Self, ReplayError> {
+        if root.join("image_0").is_dir() {
+            return Self::open_kitti(root);
+        }
+        for base in [root.join("mav0"), root.to_path_buf()] {
+            if base.join("cam0/data").is_dir() {
+                return Self::open_euroc(root, &base);
+            }
+        }
+        Err(ReplayError::Layout {
+            path: root.to_path_buf(),
+            msg: "not a dataset: expected image_0/ + image_1/ (KITTI) or [mav0/]cam0/data + cam1/data (EuRoC)".into(),
+        })
+    }
+
+    fn open_kitti(root: &Path) -> Result<Self, ReplayError> {
+        let left = pngs(&root.join("image_0"))?;
+        let times_path = root.join("times.txt");
+        let times: Vec<f64> = if times_path.is_file() {
+            let text = std::fs::read_to_string(&times_path).map_err(io(&times_path))?;
+            text.lines()
+                .enumerate()
+                .filter(|(_, l)| !l.trim().is_empty())
+                .map(|(n, l)| {
+                    l.trim()
+                        .parse::<f64>()
+                        .ok()
+                        .filter(|t| t.is_finite() && *t >= 0.0)
+                        .ok_or_else(|| ReplayError::Line {
+                            path: times_path.clone(),
+                            line: n + 1,
+                            msg: format!("{l:?} is not a time in seconds"),
+                        })
+                })
+                .collect::<Result<_, _>>()?
+        } else {
+            // Without times.txt, KITTI's 10 Hz.
+            (0..left.len()).map(|i| i as f64 * 0.1).collect()
+        };
+        if times.len() != left.len() {
+            return Err(ReplayError::Layout {
+                path: times_path,
+                msg: format!(
+                    "{} times for {} images in image_0/",
+                    times.len(),
+                    left.len()
+                ),
+            });
+        }
+        let mut frames = Vec::with_capacity(left.len());
+        for (index, (l, t)) in left.into_iter().zip(times).enumerate() {
+            let r = root.join("image_1").join(l.file_name().unwrap_or_default());
+            if !r.is_file() {
+                return Err(ReplayError::Layout {
+                    path: r,
+                    msg: "right image missing for this left image".into(),
+                });
+            }
+            frames.push(FrameFiles {
+                left: l,
+                right: r,
+                stamp_ns: (t * 1e9).round() as u64,
+                index,
+            });
+        }
+        let dataset = Self {
+            root: root.to_path_buf(),
+            layout: Layout::Kitti,
+            frames,
+            truth: None,
+        };
+        let poses = root.join("poses.txt");
+        if poses.is_file() {
+            return dataset.with_truth(&poses);
+        }
+        Ok(dataset)
+    }
+
+    fn open_euroc(root: &Path, base: &Path) -> Result<Self, ReplayError> {
+        let mut frames = Vec::new();
+        for (index, l) in pngs(&base.join("cam0/data"))?.into_iter().enumerate() {
+            let name = l
+                .file_stem()
+                .and_then(|s| s.to_str())
+                .unwrap_or_default()
+                .to_string();
+            let stamp_ns: u64 = name.parse().map_err(|_| ReplayError::Layout {
+                path: l.clone(),
+                msg: "EuRoC image names must be nanosecond timestamps".into(),
+            })?;
+            let r = base
+                .join("cam1/data")
+                .join(l.file_name().unwrap_or_default());
+            if !r.is_file() {
+                return Err(ReplayError::Layout {
+                    path: r,
+                    msg: "right image missing for this left image".into(),
+                });
+            }
+            frames.push(FrameFiles {
+                left: l,
+                right: r,
+                stamp_ns,
+                index,
+            });
+        }
+        Ok(Self {
+            root: root.to_path_buf(),
+            layout: Layout::Euroc,
+            frames,
+            truth: None,
+        })
+    }
+
+    /// Attaches ground truth from a KITTI pose file (one line per frame of the full sequence).
+    pub fn with_truth(mut self, path: &Path) -> Result<Self, ReplayError> {
+        let text = std::fs::read_to_string(path).map_err(io(path))?;
+        let mut poses = Vec::new();
+        for (n, line) in text
+            .lines()
+            .enumerate()
+            .filter(|(_, l)| !l.trim().is_empty())
+        {
+            let v: Vec<f64> = line
+                .split_whitespace()
+                .filter_map(|x| x.parse().ok())
+                .collect();
+            if v.len() != 12 || v.iter().any(|x| !x.is_finite()) {
+                return Err(ReplayError::Line {
+                    path: path.into(),
+                    line: n + 1,
+                    msg: "expected 12 finite numbers (KITTI pose)".into(),
+                });
+            }
+            let r = nalgebra::Matrix3::new(v[0], v[1], v[2], v[4], v[5], v[6], v[8], v[9], v[10]);
+            let rot = nalgebra::Rotation3::from_matrix(&r);
+            poses.push(Isometry3::from_parts(
+                nalgebra::Translation3::new(v[3], v[7], v[11]),
+                rot.into(),
+            ));
+        }
+        let needed = self.frames.iter().map(|f| f.index + 1).max().unwrap_or(0);
+        if poses.len() < needed {
+            return Err(ReplayError::Layout {
+                path: path.into(),
+                msg: format!("{} poses for {needed} frames", poses.len()),
+            });
+        }
+        self.truth = Some(self.frames.iter().map(|f| poses[f.index]).collect());
+        Ok(self)
+    }
+
+    /// Keeps part `part` (0-based) of `parts` consecutive, equal parts of the sequence.
+    pub fn split(mut self, part: usize, parts: usize) -> Result<Self, ReplayError> {
+        if parts == 0 || part >= parts {
+            return Err(ReplayError::Layout {
+                path: self.root.clone(),
+                msg: format!("split part {part} of {parts}: need part < parts"),
+            });
+        }
+        let n = self.frames.len();
+        let (a, b) = (part * n / parts, (part + 1) * n / parts);
+        self.frames = self.frames[a..b].to_vec();
+        if let Some(t) = self.truth.take() {
+            self.truth = Some(t[a..b].to_vec());
+        }
+        Ok(self)
+    }
+
+    pub fn len(&self) -> usize {
+        self.frames.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.frames.is_empty()
+    }
+
+    /// Decodes frame `k` (8-bit grayscale; colour is converted, 16-bit keeps the high byte).
+    pub fn load(&self, k: usize) -> Result<Pair, ReplayError> {
+        let f = self.frames.get(k).ok_or_else(|| ReplayError::Layout {
+            path: self.root.clone(),
+            msg: format!("no frame {k}"),
+        })?;
+        let (w, h, left) = read_gray_png(&f.left)?;
+        let (w2, h2, right) = read_gray_png(&f.right)?;
+        if (w, h) != (w2, h2) {
+            return Err(ReplayError::Layout {
+                path: f.right.clone(),
+                msg: format!("{w2}x{h2}, left image is {w}x{h}"),
+            });
+        }
+        Ok(Pair {
+            width: w,
+            height: h,
+            left,
+            right,
+        })
+    }
+}
+
+/// Reads a PNG as 8-bit grayscale.
+pub fn read_gray_png(path: &Path) -> Result<(u32, u32, Vec<u8>), ReplayError> {
+    let png_err = |msg: String| ReplayError::Png {
+        path: path.to_path_buf(),
+        msg,
+    };
+    let file = std::fs::File::open(path).map_err(io(path))?;
+    let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
+    decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
+    let mut reader = decoder.read_info().map_err(|e| png_err(e.to_string()))?;
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader
+        .next_frame(&mut buf)
+        .map_err(|e| png_err(e.to_string()))?;
+    let (w, h) = (info.width, info.height);
+    let px = (w * h) as usize;
+    let channels = info.color_type.samples();
+    let bytes = &buf[..info.buffer_size()];
+    let gray = match channels {
+        1 => bytes[..px].to_vec(),
+        2 => bytes.chunks_exact(2).map(|c| c[0]).collect(),
+        3 | 4 => bytes
+            .chunks_exact(channels)
+            .map(|c| ((299 * c[0] as u32 + 587 * c[1] as u32 + 114 * c[2] as u32) / 1000) as u8)
+            .collect(),
+        n => return Err(png_err(format!("{n} channels"))),
+    };
+    Ok((w, h, gray))
+}
+
+/// Writes an 8-bit grayscale PNG (test fixtures, debugging dumps).
+pub fn write_gray_png(
+    path: &Path,
+    width: u32,
+    height: u32,
+    pixels: &[u8],
+) -> Result<(), ReplayError> {
+    let file = std::fs::File::create(path).map_err(io(path))?;
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), width, height);
+    enc.set_color(png::ColorType::Grayscale);
+    enc.set_depth(png::BitDepth::Eight);
+    let png_err = |e: png::EncodingError| ReplayError::Png {
+        path: path.to_path_buf(),
+        msg: e.to_string(),
+    };
+    enc.write_header()
+        .and_then(|mut w| w.write_image_data(pixels))
+        .map_err(png_err)
+}

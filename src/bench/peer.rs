@@ -1,0 +1,208 @@
+//! The subscriber process of `doorslam bench ipc`: a real second process (the doorslam
+//! binary re-executed) that receives pairs, reads them in place, and reports.
+//!
+//! It speaks to the publisher on its stdout, one line each: `ready` once subscribed,
+//! `warm` once warm-up frames flow (over SHM, where the transport has it), and
+//! `report <json>` after the end marker (or its deadline).
+
+use std::time::{Duration, Instant};
+
+use anyhow::Result;
+use serde::{Deserialize, Serialize};
+
+use super::measure::{checksum, cpu_ns, mapping_of, test_image, LatencySummary, Mapping, Maps};
+use super::transports::{open_receiver, Delivered, PeerEndpoint, Phase, Transport};
+
+/// What the peer needs to know, from its command line.
+#[derive(Debug, Clone)]
+pub struct PeerSpec {
+    pub transport: Transport,
+    pub width: u32,
+    pub height: u32,
+    pub endpoint: PeerEndpoint,
+    /// The peer gives up and reports after this long, whatever happens.
+    pub deadline: Duration,
+}
+
+/// One phase as the peer saw it.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct PhaseReport {
+    pub received: u64,
+    pub latency: LatencySummary,
+    pub first_recv_ns: Option<u64>,
+    pub last_recv_ns: Option<u64>,
+}
+
+/// The peer's findings, sent back as one JSON line.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct PeerReport {
+    pub latency: PhaseReport,
+    pub throughput: PhaseReport,
+    pub paced: PhaseReport,
+    /// This process's CPU time from the first 30 Hz pair to the end marker.
+    pub paced_cpu_ns: Option<u64>,
+    /// Pairs whose checksum was computed in place (latency and throughput phases).
+    pub checked: u64,
+    pub checksum_errors: u64,
+    /// The mapping the first checked pair was read from.
+    pub mapping: Option<Mapping>,
+    /// Every checked image lay in a shared mapping of that same memory object.
+    pub all_in_shared_object: bool,
+    /// The transport's own claim (Zenoh `as_shm`), true only if made for every pair.
+    pub shm_claim: Option<bool>,
+    /// The end marker arrived (false: the deadline ended the run).
+    pub ended: bool,
+}
+
+#[derive(Default)]
+struct PhaseStats {
+    received: u64,
+    latencies_ns: Vec<u64>,
+    first_recv_ns: Option<u64>,
+    last_recv_ns: Option<u64>,
+}
+
+impl PhaseStats {
+    fn record(&mut self, d: &Delivered<'_>) {
+        self.received += 1;
+        if let Some(stamp) = d.stamp_ns {
+            self.latencies_ns.push(d.recv_ns.saturating_sub(stamp));
+        }
+        self.first_recv_ns.get_or_insert(d.recv_ns);
+        self.last_recv_ns = Some(d.recv_ns);
+    }
+
+    fn report(self) -> PhaseReport {
+        PhaseReport {
+            received: self.received,
+            latency: LatencySummary::from_samples(self.latencies_ns),
+            first_recv_ns: self.first_recv_ns,
+            last_recv_ns: self.last_recv_ns,
+        }
+    }
+}
+
+struct Stats {
+    carries_payload: bool,
+    expected: (u64, u64),
+    warm_frames: u64,
+    warm_said: bool,
+    phases: [PhaseStats; 3],
+    paced_cpu_start: Option<u64>,
+    paced_cpu_ns: Option<u64>,
+    maps: Option<Maps>,
+    report: PeerReport,
+}
+
+impl Stats {
+    fn new(spec: &PeerSpec) -> Self {
+        let (w, h) = (spec.width, spec.height);
+        Self {
+            carries_payload: spec.transport.carries_payload(),
+            expected: (
+                checksum(&test_image(w, h, 0)),
+                checksum(&test_image(w, h, 1)),
+            ),
+            warm_frames: 0,
+            warm_said: false,
+            phases: Default::default(),
+            paced_cpu_start: None,
+            paced_cpu_ns: None,
+            maps: None,
+            report: PeerReport {
+                all_in_shared_object: true,
+                ..PeerReport::default()
+            },
+        }
+    }
+
+    fn on_frame(&mut self, d: &Delivered<'_>) {
+        let slot = match d.phase {
+            Phase::Warmup => return self.on_warmup(d),
+            Phase::End => {
+                if !self.report.ended {
+                    self.report.ended = true;
+                    self.paced_cpu_ns = self.paced_cpu_start.map(|s| cpu_ns().saturating_sub(s));
+                }
+                return;
+            }
+            Phase::Latency => 0,
+            Phase::Throughput => 1,
+            Phase::Paced => {
+                self.paced_cpu_start.get_or_insert_with(cpu_ns);
+                2
+            }
+        };
+        self.phases[slot].record(d);
+        if let Some(claim) = d.shm_claim {
+            self.report.shm_claim = Some(self.report.shm_claim.unwrap_or(true) && claim);
+        }
+        // The 30 Hz phase measures the transport's CPU cost, so it does not read images.
+        if self.carries_payload && d.phase != Phase::Paced {
+            self.check_in_place(d);
+        }
+    }
+
+    fn on_warmup(&mut self, d: &Delivered<'_>) {
+        self.warm_frames += 1;
+        if self.carries_payload {
+            // Primes the /proc/self/maps cache outside the measured phases.
+            let _ = mapping_of(&mut self.maps, d.left);
+        }
+        // Zenoh starts on the network path and switches to SHM once probed: wait for a
+        // SHM frame (or give up after 50 and let the report say it never came).
+        let steady = d.shm_claim != Some(false) || self.warm_frames >= 50;
+        if !self.warm_said && self.warm_frames >= 3 && steady {
+            self.warm_said = true;
+            println!("warm");
+        }
+    }
+
+    /// Reads both images where they lie (a checksum over every byte, no copy) and notes
+    /// which memory object they lie in.
+    fn check_in_place(&mut self, d: &Delivered<'_>) {
+        self.report.checked += 1;
+        if (checksum(d.left), checksum(d.right)) != self.expected {
+            self.report.checksum_errors += 1;
+        }
+        let left = mapping_of(&mut self.maps, d.left);
+        let right = mapping_of(&mut self.maps, d.right);
+        if self.report.mapping.is_none() {
+            self.report.mapping = left.clone();
+        }
+        let in_object = |m: &Option<Mapping>, first: &Option<Mapping>| match (m, first) {
+            (Some(m), Some(first)) => m.same_shared_object(first),
+            _ => false,
+        };
+        let first = &self.report.mapping;
+        if !(in_object(&left, first) && in_object(&right, first)) {
+            self.report.all_in_shared_object = false;
+        }
+    }
+
+    fn finish(mut self) -> PeerReport {
+        let [latency, throughput, paced] = std::mem::take(&mut self.phases);
+        self.report.latency = latency.report();
+        self.report.throughput = throughput.report();
+        self.report.paced = paced.report();
+        self.report.paced_cpu_ns = self.paced_cpu_ns;
+        if self.report.checked == 0 {
+            self.report.all_in_shared_object = false;
+        }
+        self.report
+    }
+}
+
+/// Runs the peer until the end marker or the deadline, then prints its report.
+pub fn run_peer(spec: &PeerSpec) -> Result<()> {
+    let mut receiver = open_receiver(spec.transport, &spec.endpoint)?;
+    let mut stats = Stats::new(spec);
+    println!("ready");
+    let deadline = Instant::now() + spec.deadline;
+    while !stats.report.ended && Instant::now() < deadline {
+        receiver.receive(Duration::from_millis(50), &mut |d| stats.on_frame(d))?;
+    }
+    let report = stats.finish();
+    println!("report {}", serde_json::to_string(&report)?);
+    Ok(())
+}
