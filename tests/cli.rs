@@ -36,7 +36,6 @@ fn help_lists_every_subcommand() {
 fn unfinished_commands_fail_clearly_without_panicking() {
     let pending = [
         (vec!["dpgo"], "distributed back-end"),
-        (vec!["sim", "world"], "#6"),
         (vec!["replay", "dir"], "#6"),
         (vec!["bw"], "team-link"),
         (vec!["service", "frontend"], "front-end"),
@@ -299,4 +298,50 @@ fn pcm_refuses_bad_thresholds_and_graphs_without_candidates() {
         &data("pose_graphs/gtsam/noisyToyGraph.txt"),
     ]));
     assert!(err.contains("3-D"), "{err}");
+}
+
+#[test]
+fn sim_graph_and_pcm_sweep_reject_every_uniform_outlier() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = doorslam(&[
+        "sim",
+        "graph",
+        "--robots",
+        "3",
+        "--poses",
+        "60",
+        "--out",
+        tmp.path().to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    for f in ["graph.g2o", "labels.txt", "gt_a.txt", "gt_c.tum"] {
+        assert!(tmp.path().join(f).is_file(), "{f} missing");
+    }
+    let out = doorslam(&[
+        "sim",
+        "pcm-sweep",
+        "--runs",
+        "3",
+        "--thresholds",
+        "0.99",
+        "--json",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let pcm = &v["thresholds"][0]["pcm"];
+    assert_eq!(pcm["outliers_rejected_pct"].as_f64().unwrap(), 100.0, "{v}");
+    assert!(pcm["inliers_rejected_pct"].as_f64().unwrap() < 10.0, "{v}");
+    assert!(
+        v["none"]["ate_m"].as_f64().unwrap() > 2.0 * pcm["ate_m"].as_f64().unwrap(),
+        "{v}"
+    );
+    let err = stderr(&doorslam(&[
+        "sim",
+        "pcm-sweep",
+        "--runs",
+        "1",
+        "--thresholds",
+        "1.5",
+    ]));
+    assert!(err.contains("1.5") && err.contains("probability"), "{err}");
 }

@@ -7,6 +7,7 @@
 mod child;
 mod ipc;
 mod measure;
+pub mod pcm_sweep;
 mod peer;
 mod report;
 mod transports;

@@ -7,6 +7,7 @@ mod pcm;
 mod pending;
 mod pgo;
 mod service;
+mod sim;
 mod up;
 
 use std::process::ExitCode;
@@ -36,7 +37,7 @@ pub enum Command {
     /// Evaluate trajectories: ATE / RPE against ground truth.
     Eval(eval::EvalArgs),
     /// Simulate worlds, flights and multi-robot pose graphs.
-    Sim(pending::PendingArgs),
+    Sim(sim::SimArgs),
     /// Replay a dataset (KITTI / EuRoC layout) into the on-robot pipeline.
     Replay(pending::PendingArgs),
     /// Measure what each inter-robot message kind costs in bytes.
@@ -69,7 +70,7 @@ pub fn main() -> ExitCode {
             pending::fail("dpgo", "the distributed back-end issue (next wave)", &args)
         }
         Command::Eval(args) => eval::run(args),
-        Command::Sim(args) => pending::fail("sim", "the HIL/simulation issue (#6)", &args),
+        Command::Sim(args) => sim::run(args),
         Command::Replay(args) => pending::fail("replay", "the HIL/simulation issue (#6)", &args),
         Command::Bw(args) => pending::fail("bw", "the team-link issue (next wave)", &args),
         Command::Demo(args) => demo::run(args),

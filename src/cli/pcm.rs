@@ -28,6 +28,10 @@ pub struct PcmArgs {
     /// is kept and reported with "exact": false).
     #[arg(long)]
     pub time_budget: Option<f64>,
+    /// Smallest clique kept per robot pair: a single closure between two robots cannot be
+    /// checked against anything, so by default (2) it waits for a consistent second one.
+    #[arg(long, default_value_t = 2)]
+    pub min_clique: usize,
     /// Skip lines with unknown tags (with a warning) instead of failing.
     #[arg(long)]
     pub skip_unknown: bool,
@@ -86,6 +90,7 @@ pub fn run(args: PcmArgs) -> Result<()> {
         Scope::InterRobot
     };
     let mut pcm = Pcm::new(args.threshold, scope).context("--threshold")?;
+    pcm.min_clique = args.min_clique;
     if let Some(b) = args.time_budget {
         anyhow::ensure!(
             b.is_finite() && b >= 0.0,

@@ -235,6 +235,16 @@ impl PairProblem {
     pub fn inliers(&self) -> &[usize] {
         &self.clique
     }
+
+    /// The clique if it has at least `min_clique` closures, else nothing: a lone closure
+    /// (or too few) between two robots cannot be checked against anything.
+    pub fn accepted(&self, min_clique: usize) -> &[usize] {
+        if self.clique.len() >= min_clique {
+            &self.clique
+        } else {
+            &[]
+        }
+    }
     pub fn exact(&self) -> bool {
         self.exact
     }
@@ -258,6 +268,10 @@ pub struct Pcm {
     pub gamma: f64,
     pub scope: Scope,
     pub budget: Option<Duration>,
+    /// Smallest clique accepted per robot pair (default 2: a single closure between two
+    /// robots is consistent with itself by definition and proves nothing; it is kept
+    /// waiting until a second, consistent one arrives).
+    pub min_clique: usize,
     pub problems: BTreeMap<(Option<u8>, Option<u8>), PairProblem>,
 }
 
@@ -281,6 +295,7 @@ impl Pcm {
             gamma,
             scope,
             budget: None,
+            min_clique: 2,
             problems: BTreeMap::new(),
         })
     }
@@ -339,10 +354,10 @@ impl Pcm {
         for p in self.problems.values() {
             s.closures += p.closures.len();
             s.consistent_pairs += p.consistent_pairs();
-            s.clique_size += p.inliers().len();
+            s.clique_size += p.accepted(self.min_clique).len();
             s.exact &= p.exact();
             s.inliers.extend(
-                p.inliers()
+                p.accepted(self.min_clique)
                     .iter()
                     .map(|&k| (p.closures[k].u, p.closures[k].v)),
             );
