@@ -36,7 +36,6 @@ fn help_lists_every_subcommand() {
 fn unfinished_commands_fail_clearly_without_panicking() {
     let pending = [
         (vec!["dpgo"], "distributed back-end"),
-        (vec!["replay", "dir"], "#6"),
         (vec!["bw"], "team-link"),
         (vec!["service", "frontend"], "front-end"),
         (vec!["service", "place-recognition"], "place-recognition"),

@@ -300,3 +300,67 @@ fn backend_killed_mid_run_resumes_with_its_graph() {
         "{log}"
     );
 }
+
+#[test]
+fn replay_splits_one_sequence_into_robots() {
+    use doorslam_ipc::{Receiver, StereoFrame, FRAME_HAS_TRUTH};
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("seq");
+    write_dataset(&data, 20);
+    let prefix = format!("split{}", std::process::id());
+    let (node, _) = create_node("pipeline-test-replay-subscriber").unwrap();
+    let receivers: Vec<Receiver<StereoFrame>> = ["a", "b"]
+        .iter()
+        .map(|r| Receiver::new(&node, &format!("{prefix}{r}"), Topic::Frames).unwrap())
+        .collect();
+    // 100 Hz real time: 10 frames per robot in 0.1 s, slow enough for this reader.
+    let mut replay = Command::new(BIN)
+        .args([
+            "replay",
+            data.to_str().unwrap(),
+            "--robots",
+            "2",
+            "--robot-prefix",
+            &prefix,
+            "--rate",
+            "1",
+            "--wait-s",
+            "10",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut got: Vec<Vec<(u64, f64)>> = vec![vec![], vec![]];
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while got.iter().map(Vec::len).sum::<usize>() < 20 && Instant::now() < deadline {
+        for (r, rx) in receivers.iter().enumerate() {
+            while let Some(s) = rx.try_recv().unwrap() {
+                let h = *s.payload().header();
+                assert_ne!(
+                    h.flags & FRAME_HAS_TRUTH,
+                    0,
+                    "replayed frames carry the truth of poses.txt"
+                );
+                assert_eq!((h.width, h.height, h.robot), (64, 48, r as u32));
+                got[r].push((h.seq, h.truth_pose[0]));
+            }
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    let status = wait_exit(&mut replay, Duration::from_secs(20));
+    assert!(status.success());
+    // Robot a plays frames 0..10 (x = 0.0 .. 0.9), robot b frames 10..20 (x = 1.0 .. 1.9).
+    assert_eq!(
+        got[0].iter().map(|g| g.0).collect::<Vec<_>>(),
+        (0..10).collect::<Vec<_>>()
+    );
+    assert_eq!(
+        got[1].iter().map(|g| g.0).collect::<Vec<_>>(),
+        (0..10).collect::<Vec<_>>()
+    );
+    assert!(
+        (got[0][0].1 - 0.0).abs() < 1e-9 && (got[1][0].1 - 1.0).abs() < 1e-9,
+        "{got:?}"
+    );
+}

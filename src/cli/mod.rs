@@ -6,6 +6,7 @@ mod eval;
 mod pcm;
 mod pending;
 mod pgo;
+mod replay;
 mod service;
 mod sim;
 mod up;
@@ -39,7 +40,7 @@ pub enum Command {
     /// Simulate worlds, flights and multi-robot pose graphs.
     Sim(sim::SimArgs),
     /// Replay a dataset (KITTI / EuRoC layout) into the on-robot pipeline.
-    Replay(pending::PendingArgs),
+    Replay(replay::ReplayArgs),
     /// Measure what each inter-robot message kind costs in bytes.
     Bw(pending::PendingArgs),
     /// Run the demo (today: a check of the whole dependency stack on real data).
@@ -71,7 +72,7 @@ pub fn main() -> ExitCode {
         }
         Command::Eval(args) => eval::run(args),
         Command::Sim(args) => sim::run(args),
-        Command::Replay(args) => pending::fail("replay", "the HIL/simulation issue (#6)", &args),
+        Command::Replay(args) => replay::run(args),
         Command::Bw(args) => pending::fail("bw", "the team-link issue (next wave)", &args),
         Command::Demo(args) => demo::run(args),
         Command::Bench(args) => bench::run(args),

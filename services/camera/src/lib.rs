@@ -10,6 +10,8 @@ use serde::Deserialize;
 
 pub mod replay;
 
+pub use replay::ReplayReport;
+
 /// Failures of the camera service.
 #[derive(Debug, thiserror::Error)]
 pub enum CameraError {
@@ -56,6 +58,9 @@ pub struct ReplayConfig {
     /// Wait up to this long for a first subscriber before playing (frames are lossy).
     #[serde(default = "default_wait")]
     pub wait_for_subscribers_s: f64,
+    /// Stepped playback: one frame per line read on standard input (end of input stops).
+    #[serde(default)]
+    pub step: bool,
 }
 
 fn default_rate() -> f64 {

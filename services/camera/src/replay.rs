@@ -53,7 +53,19 @@ pub fn run(
             break;
         }
         let f = &dataset.frames[k];
-        if config.rate > 0.0 {
+        if config.step {
+            let mut line = String::new();
+            eprintln!(
+                "replay: frame {k} of {} ready, press Enter to publish it",
+                dataset.len()
+            );
+            if std::io::stdin()
+                .read_line(&mut line)
+                .map_or(true, |n| n == 0)
+            {
+                break;
+            }
+        } else if config.rate > 0.0 {
             let due =
                 Duration::from_secs_f64(f.stamp_ns.saturating_sub(t0) as f64 * 1e-9 / config.rate);
             if let Some(wait) = due.checked_sub(start.elapsed()) {
