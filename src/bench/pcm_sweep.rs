@@ -238,28 +238,19 @@ fn method(team: &SimulatedTeam, p: f64, name: &str) -> Result<Outcome> {
             let (g, _) = solve(team, &mask, false)?;
             let gamma = chi2_quantile(0.99, 6).context("χ² quantile")?;
             let n_odo = team.odometry_edges().len();
-            let readmitted: Vec<bool> = mask
-                .iter()
-                .enumerate()
-                .map(|(c, &k)| {
-                    k || {
+            let rejected: Vec<usize> = (0..mask.len()).filter(|c| !mask[*c]).collect();
+            let candidates: Vec<(u64, u64, &doorslam_backend::BetweenFactor<Isometry3<f64>>)> =
+                rejected
+                    .iter()
+                    .map(|&c| {
                         let e = &team.graph.edges[n_odo + c];
-                        let (a, b) = (team.graph.keys()[e.i], team.graph.keys()[e.j]);
-                        let (ia, ib) = (g.index_of(a), g.index_of(b));
-                        match (ia, ib) {
-                            (Some(ia), Some(ib)) => {
-                                let r = doorslam_backend::graph::between_residual(
-                                    &g.poses()[ia],
-                                    &g.poses()[ib],
-                                    &e.measured,
-                                );
-                                r.dot(&(e.information * r)) <= gamma
-                            }
-                            _ => false,
-                        }
-                    }
-                })
-                .collect();
+                        (team.graph.keys()[e.i], team.graph.keys()[e.j], e)
+                    })
+                    .collect();
+            let mut readmitted = mask.clone();
+            for k in doorslam_backend::outliers::readmit(&g, &candidates, gamma) {
+                readmitted[rejected[k]] = true;
+            }
             let (g, kept) = solve(team, &readmitted, true)?;
             Ok(Outcome {
                 ate: ate(team, &g)?,

@@ -3,6 +3,7 @@
 
 pub mod max_clique;
 pub mod pcm;
+pub mod readmit;
 
 pub use max_clique::{
     core_decomposition, heuristic_clique, maximum_clique, CliqueOptions, CliqueResult,
@@ -11,3 +12,4 @@ pub use max_clique::{
 pub use pcm::{
     pairwise_mahalanobis2, Closure, Odometry, PairProblem, Pcm, PcmError, PcmSummary, Scope,
 };
+pub use readmit::readmit;
