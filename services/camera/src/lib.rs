@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+pub mod capture;
 pub mod replay;
 
 pub use replay::ReplayReport;
@@ -21,8 +22,7 @@ pub enum CameraError {
     Config(String),
     #[error("camera {path}: {reason}")]
     Device { path: PathBuf, reason: String },
-    #[error("capture from {path} is not built yet: it arrives with the on-robot pipeline issue (#11); use `doorslam replay` meanwhile")]
-    CaptureNotBuilt { path: PathBuf },
+
     #[error("replay: {0}")]
     Replay(#[from] doorslam_hil::replay::ReplayError),
     #[error(transparent)]
@@ -92,6 +92,9 @@ pub struct CameraConfig {
     /// Image height, pixels.
     #[serde(default = "default_height")]
     pub height: u32,
+    /// Exposure in units of 100 µs (`V4L2_CID_EXPOSURE_ABSOLUTE`); driver default if absent.
+    #[serde(default)]
+    pub exposure_100us: Option<u32>,
     /// Frames per second requested from the driver.
     #[serde(default = "default_fps")]
     pub fps: u32,
@@ -120,6 +123,7 @@ impl Default for CameraConfig {
             width: default_width(),
             height: default_height(),
             fps: default_fps(),
+            exposure_100us: None,
         }
     }
 }
@@ -226,15 +230,5 @@ pub fn run(config: &CameraConfig, robot: &str, robot_index: u32) -> Result<(), C
     if let (CameraSource::Replay, Some(replay)) = (config.source, &config.replay) {
         return replay::run(replay, robot, robot_index).map(|_| ());
     }
-    let devices = open_devices(config)?;
-    for dev in &devices {
-        let caps = dev.query_caps().map_err(|e| CameraError::Device {
-            path: config.left.clone(),
-            reason: e.to_string(),
-        })?;
-        tracing::info!(card = %caps.card, driver = %caps.driver, "camera opened");
-    }
-    Err(CameraError::CaptureNotBuilt {
-        path: config.left.clone(),
-    })
+    capture::run(config, robot, robot_index)
 }
