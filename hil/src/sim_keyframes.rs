@@ -7,10 +7,11 @@
 use std::time::Duration;
 
 use doorslam_ipc::{
-    create_node, Feature, Keyframe, KeyframeSource, Lifecycle, OdometryEdge, Receiver, Sender,
-    StereoFrame, Topic, FRAME_HAS_TRUTH, MAX_KEYFRAME_FEATURES,
+    create_node, pose_from_array, pose_to_array, upper_from_diagonal, Feature, Keyframe,
+    KeyframeSource, Lifecycle, OdometryEdge, Receiver, Sender, StereoFrame, Topic, FRAME_HAS_TRUTH,
+    MAX_KEYFRAME_FEATURES,
 };
-use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+use nalgebra::Isometry3;
 
 /// Failures of the sim-keyframes service.
 #[derive(Debug, thiserror::Error)]
@@ -39,32 +40,6 @@ pub struct SimKeyframesReport {
     /// Frames lost upstream (gaps in sequence numbers: frames are lossy by design).
     pub dropped_frames: u64,
     pub keyframes: u64,
-}
-
-fn pose_of(p: &[f64; 7]) -> Isometry3<f64> {
-    let q = UnitQuaternion::from_quaternion(Quaternion::new(p[6], p[3], p[4], p[5]));
-    Isometry3::from_parts(Translation3::new(p[0], p[1], p[2]), q)
-}
-
-fn seven(p: &Isometry3<f64>) -> [f64; 7] {
-    let (t, q) = (p.translation.vector, p.rotation.quaternion());
-    [t.x, t.y, t.z, q.i, q.j, q.k, q.w]
-}
-
-/// Information of simulated odometry (rotation-first upper triangle): σ_R = 0.01 rad,
-/// σ_t = 0.1 m, the noise level of the paper's simulation.
-fn odometry_information() -> [f64; 21] {
-    let mut upper = [0.0; 21];
-    let mut k = 0;
-    for r in 0..6 {
-        for c in r..6 {
-            if r == c {
-                upper[k] = if r < 3 { 1e4 } else { 1e2 };
-            }
-            k += 1;
-        }
-    }
-    upper
 }
 
 /// Runs until SIGTERM/SIGINT.
@@ -99,7 +74,7 @@ pub fn run(config: &SimKeyframesConfig) -> Result<SimKeyframesReport, SimKeyfram
         if h.flags & FRAME_HAS_TRUTH == 0 {
             return Err(SimKeyframesError::NoTruth { seq: h.seq });
         }
-        let pose = pose_of(&h.truth_pose);
+        let pose = pose_from_array(&h.truth_pose);
         let id = report.keyframes;
         keyframes.send_with(|slot| {
             slot.write(Keyframe {
@@ -122,8 +97,9 @@ pub fn run(config: &SimKeyframesConfig) -> Result<SimKeyframesReport, SimKeyfram
                 from: prev_id,
                 to: id,
                 stamp_ns: h.stamp_ns,
-                relative: seven(&(prev_pose.inverse() * pose)),
-                information: odometry_information(),
+                relative: pose_to_array(&(prev_pose.inverse() * pose)),
+                // σ_R = 0.01 rad, σ_t = 0.1 m: the noise level of the paper's simulation.
+                information: upper_from_diagonal([1e4, 1e4, 1e4, 1e2, 1e2, 1e2]),
             };
             odometry.send_copy(&edge)?;
         }

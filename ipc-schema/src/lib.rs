@@ -19,11 +19,13 @@
 
 pub mod channel;
 pub mod lifecycle;
+pub mod pose;
 pub mod service;
 pub mod shm;
 
 pub use channel::{Receiver, Sender, RELIABLE_BUFFER};
 pub use lifecycle::{sd_notify, Lifecycle};
+pub use pose::{matrix_from_upper, pose_from_array, pose_to_array, upper_from_diagonal};
 pub use service::{
     cleanup_dead_nodes, create_node, open_frames, service_name, FramePublisher, FrameSubscriber,
     IpcError, Topic,

@@ -10,13 +10,13 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use doorslam_ipc::{
-    create_node, Keyframe, Lifecycle, OdometryEdge, PoseEstimate, Receiver, Sender, Topic,
+    create_node, matrix_from_upper, pose_from_array, pose_to_array, Keyframe, Lifecycle,
+    OdometryEdge, PoseEstimate, Receiver, Sender, Topic,
 };
-use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+use nalgebra::Isometry3;
 
 use crate::graph::{key, PoseGraph};
 use crate::journal::{Entry, Journal, JournalError};
-use crate::lie::TangentMatrix;
 use crate::solver::{Optimizer, SolverOptions};
 
 /// Failures of the back-end service.
@@ -56,29 +56,6 @@ pub struct BackendReport {
     pub gaps: usize,
 }
 
-fn pose_of(p: &[f64; 7]) -> Isometry3<f64> {
-    let q = UnitQuaternion::from_quaternion(Quaternion::new(p[6], p[3], p[4], p[5]));
-    Isometry3::from_parts(Translation3::new(p[0], p[1], p[2]), q)
-}
-
-fn seven(p: &Isometry3<f64>) -> [f64; 7] {
-    let (t, q) = (p.translation.vector, p.rotation.quaternion());
-    [t.x, t.y, t.z, q.i, q.j, q.k, q.w]
-}
-
-fn information_of(upper: &[f64; 21]) -> TangentMatrix {
-    let mut m = TangentMatrix::zeros();
-    let mut k = 0;
-    for r in 0..6 {
-        for c in r..6 {
-            m[(r, c)] = upper[k];
-            m[(c, r)] = upper[k];
-            k += 1;
-        }
-    }
-    m
-}
-
 /// The graph being built, with the bookkeeping of ids.
 struct State {
     robot: u8,
@@ -95,7 +72,7 @@ impl State {
                 if self.graph.index_of(k).is_some() {
                     return false;
                 }
-                self.graph.add_pose(k, pose_of(pose));
+                self.graph.add_pose(k, pose_from_array(pose));
                 self.next_id = Some(self.next_id.map_or(id + 1, |n| n.max(id + 1)));
                 true
             }
@@ -111,8 +88,12 @@ impl State {
                 );
                 match (a, b) {
                     (Some(a), Some(b)) if a != b => {
-                        self.graph
-                            .add_edge(a, b, pose_of(relative), information_of(information));
+                        self.graph.add_edge(
+                            a,
+                            b,
+                            pose_from_array(relative),
+                            matrix_from_upper(information),
+                        );
                         true
                     }
                     _ => false,
@@ -260,7 +241,7 @@ pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
                     reserved: 0,
                     keyframe: key::index(k),
                     stamp_ns: 0,
-                    pose: seven(p),
+                    pose: pose_to_array(p),
                 };
                 estimates.send_copy(&est)?;
             }

@@ -73,10 +73,10 @@ pub fn run(
             }
         }
         let pair = dataset.load(k)?;
-        let truth = dataset.truth.as_ref().map(|t| {
-            let (p, q) = (t[k].translation.vector, t[k].rotation.quaternion());
-            [p.x, p.y, p.z, q.i, q.j, q.k, q.w]
-        });
+        let truth = dataset
+            .truth
+            .as_ref()
+            .map(|t| doorslam_ipc::pose_to_array(&t[k]));
         let header = FrameHeader {
             seq: report.published,
             stamp_ns: f.stamp_ns,
