@@ -67,6 +67,29 @@ fn keyframe_ids(journal: &Path) -> (Vec<u64>, usize) {
     (ids, edges)
 }
 
+/// Kills the process when dropped, so a failing test leaves no service running.
+struct Guard(Child);
+
+impl Drop for Guard {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl std::ops::Deref for Guard {
+    type Target = Child;
+    fn deref(&self) -> &Child {
+        &self.0
+    }
+}
+
+impl std::ops::DerefMut for Guard {
+    fn deref_mut(&mut self) -> &mut Child {
+        &mut self.0
+    }
+}
+
 fn signal(child: &Child, sig: i32) {
     // SAFETY: kill(2) on our own child.
     unsafe {
@@ -106,12 +129,14 @@ fn replay_to_sim_keyframes_to_backend_delivers_every_keyframe_in_order() {
         ),
     )
     .unwrap();
-    let mut up = Command::new(BIN)
-        .args(["up", "--config", config.to_str().unwrap()])
-        .env("RUST_LOG", "info")
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut up = Guard(
+        Command::new(BIN)
+            .args(["up", "--config", config.to_str().unwrap()])
+            .env("RUST_LOG", "info")
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    );
     let mut stderr = up.stderr.take().unwrap();
     let log = std::thread::spawn(move || {
         let mut s = String::new();
@@ -198,12 +223,14 @@ fn odometry(from: u64) -> OdometryEdge {
     }
 }
 
-fn start_backend(config: &Path, log: &Path) -> Child {
-    Command::new(BIN)
-        .args(["service", "backend", "--config", config.to_str().unwrap()])
-        .stderr(std::fs::File::create(log).unwrap())
-        .spawn()
-        .unwrap()
+fn start_backend(config: &Path, log: &Path) -> Guard {
+    Guard(
+        Command::new(BIN)
+            .args(["service", "backend", "--config", config.to_str().unwrap()])
+            .stderr(std::fs::File::create(log).unwrap())
+            .spawn()
+            .unwrap(),
+    )
 }
 
 fn wait_ready(log: &Path) {
@@ -310,23 +337,25 @@ fn replay_splits_one_sequence_into_robots() {
         .map(|r| Receiver::new(&node, &format!("{prefix}{r}"), Topic::Frames).unwrap())
         .collect();
     // 100 Hz real time: 10 frames per robot in 0.1 s, slow enough for this reader.
-    let mut replay = Command::new(BIN)
-        .args([
-            "replay",
-            data.to_str().unwrap(),
-            "--robots",
-            "2",
-            "--robot-prefix",
-            &prefix,
-            "--rate",
-            "1",
-            "--wait-s",
-            "10",
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut replay = Guard(
+        Command::new(BIN)
+            .args([
+                "replay",
+                data.to_str().unwrap(),
+                "--robots",
+                "2",
+                "--robot-prefix",
+                &prefix,
+                "--rate",
+                "1",
+                "--wait-s",
+                "10",
+            ])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    );
     let mut got: Vec<Vec<(u64, f64)>> = vec![vec![], vec![]];
     let deadline = Instant::now() + Duration::from_secs(20);
     while got.iter().map(Vec::len).sum::<usize>() < 20 && Instant::now() < deadline {
