@@ -29,6 +29,7 @@
 mod camera;
 mod cull;
 mod error;
+pub mod flights;
 mod geometry;
 mod image;
 mod noise;

@@ -33,14 +33,9 @@ pub fn matrix_from_upper(upper: &[f64; 21]) -> Matrix6<f64> {
 /// Diagonal matrix → its upper triangle (row-major, 21 values).
 pub fn upper_from_diagonal(diagonal: [f64; 6]) -> [f64; 21] {
     let mut upper = [0.0; 21];
-    let mut k = 0;
-    for r in 0..6 {
-        for c in r..6 {
-            if r == c {
-                upper[k] = diagonal[r];
-            }
-            k += 1;
-        }
+    // Row r of the upper triangle starts at r·6 − r(r−1)/2; its first entry is (r, r).
+    for (r, d) in diagonal.iter().enumerate() {
+        upper[r * 6 - r * r.saturating_sub(1) / 2] = *d;
     }
     upper
 }
