@@ -90,6 +90,19 @@ fn pngs(dir: &Path) -> Result<Vec<PathBuf>, ReplayError> {
     Ok(files)
 }
 
+/// The right image with the same file name as `left`, in `right_dir`.
+fn right_of(left: &Path, right_dir: &Path) -> Result<PathBuf, ReplayError> {
+    let r = right_dir.join(left.file_name().unwrap_or_default());
+    if r.is_file() {
+        Ok(r)
+    } else {
+        Err(ReplayError::Layout {
+            path: r,
+            msg: "right image missing for this left image".into(),
+        })
+    }
+}
+
 impl Dataset {
     /// Opens a KITTI or EuRoC folder (detected from its contents).
     pub fn open(root: &Path) -> Result<Self, ReplayError> {
@@ -143,13 +156,7 @@ impl Dataset {
         }
         let mut frames = Vec::with_capacity(left.len());
         for (index, (l, t)) in left.into_iter().zip(times).enumerate() {
-            let r = root.join("image_1").join(l.file_name().unwrap_or_default());
-            if !r.is_file() {
-                return Err(ReplayError::Layout {
-                    path: r,
-                    msg: "right image missing for this left image".into(),
-                });
-            }
+            let r = right_of(&l, &root.join("image_1"))?;
             frames.push(FrameFiles {
                 left: l,
                 right: r,
@@ -182,15 +189,7 @@ impl Dataset {
                 path: l.clone(),
                 msg: "EuRoC image names must be nanosecond timestamps".into(),
             })?;
-            let r = base
-                .join("cam1/data")
-                .join(l.file_name().unwrap_or_default());
-            if !r.is_file() {
-                return Err(ReplayError::Layout {
-                    path: r,
-                    msg: "right image missing for this left image".into(),
-                });
-            }
+            let r = right_of(&l, &base.join("cam1/data"))?;
             frames.push(FrameFiles {
                 left: l,
                 right: r,

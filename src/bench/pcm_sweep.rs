@@ -24,22 +24,15 @@ use doorslam_backend::init::Chordal;
 use doorslam_backend::outliers::{Pcm, Scope};
 use doorslam_backend::robust::chi2_quantile;
 use doorslam_backend::{key, optimize, Kernel, PoseGraph, SolverOptions};
-use doorslam_hil::posegraph_sim::{simulate, SimConfig, SimulatedTeam};
+use doorslam_hil::posegraph_sim::{simulate, SimulatedTeam};
 use nalgebra::Isometry3;
 
 #[derive(Debug, Args)]
 pub struct SweepArgs {
     #[arg(long, default_value_t = 100)]
     pub runs: usize,
-    #[arg(long, default_value_t = 5)]
-    pub robots: usize,
-    #[arg(long, default_value_t = 100)]
-    pub poses: usize,
-    /// Fraction of inter-robot closures that are outliers.
-    #[arg(long, default_value_t = 0.3)]
-    pub outliers: f64,
-    #[arg(long, default_value_t = 0)]
-    pub correlated_groups: usize,
+    #[command(flatten)]
+    pub team: crate::cli::sim::TeamArgs,
     /// PCM thresholds (probabilities).
     #[arg(
         long,
@@ -297,14 +290,7 @@ pub fn run(args: SweepArgs) -> Result<()> {
     let (mut none, mut gnc_only) = (Cell::default(), Cell::default());
     let start = std::time::Instant::now();
     for run in 0..args.runs {
-        let config = SimConfig {
-            robots: args.robots,
-            poses_per_robot: args.poses,
-            outlier_fraction: args.outliers,
-            correlated_groups: args.correlated_groups,
-            seed: args.first_seed + run as u64,
-            ..SimConfig::default()
-        };
+        let config = args.team.config(args.first_seed + run as u64);
         let team = simulate(&config)?;
         let all = vec![true; team.closures.len()];
         for (cell, gnc) in [(&mut none, false), (&mut gnc_only, true)] {
@@ -364,18 +350,18 @@ pub fn run(args: SweepArgs) -> Result<()> {
             .collect();
         println!(
             "{}",
-            serde_json::json!({"runs": args.runs, "robots": args.robots, "poses": args.poses, "outliers": args.outliers,
-            "correlated_groups": args.correlated_groups, "none": row(&none), "gnc": row(&gnc_only), "thresholds": per})
+            serde_json::json!({"runs": args.runs, "robots": args.team.robots, "poses": args.team.poses, "outliers": args.team.outliers,
+            "correlated_groups": args.team.correlated_groups, "none": row(&none), "gnc": row(&gnc_only), "thresholds": per})
         );
         return Ok(());
     }
     println!(
         "{} runs, {} robots x {} poses, {:.0} % outliers, {} correlated groups; mean ± std over runs\n",
         args.runs,
-        args.robots,
-        args.poses,
-        100.0 * args.outliers,
-        args.correlated_groups
+        args.team.robots,
+        args.team.poses,
+        100.0 * args.team.outliers,
+        args.team.correlated_groups
     );
     println!("| PCM p | method | outliers rejected (%) | inliers rejected (%) | ATE (m) | robots in ATE |");
     println!("| ---: | --- | ---: | ---: | ---: | ---: |");

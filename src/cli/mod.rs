@@ -8,7 +8,7 @@ mod pending;
 mod pgo;
 mod replay;
 mod service;
-mod sim;
+pub(crate) mod sim;
 mod up;
 
 use std::process::ExitCode;

@@ -27,8 +27,9 @@ pub enum SimCommand {
     World(WorldArgs),
 }
 
-#[derive(Debug, Args)]
-pub struct GraphArgs {
+/// The simulated team of `sim graph` and `sim pcm-sweep`.
+#[derive(Debug, Clone, Args)]
+pub struct TeamArgs {
     #[arg(long, default_value_t = 5)]
     pub robots: usize,
     #[arg(long, default_value_t = 100)]
@@ -39,6 +40,26 @@ pub struct GraphArgs {
     /// Groups of mutually consistent wrong closures (perceptual aliasing).
     #[arg(long, default_value_t = 0)]
     pub correlated_groups: usize,
+}
+
+impl TeamArgs {
+    /// The simulator's configuration for this team and `seed`.
+    pub fn config(&self, seed: u64) -> SimConfig {
+        SimConfig {
+            robots: self.robots,
+            poses_per_robot: self.poses,
+            outlier_fraction: self.outliers,
+            correlated_groups: self.correlated_groups,
+            seed,
+            ..SimConfig::default()
+        }
+    }
+}
+
+#[derive(Debug, Args)]
+pub struct GraphArgs {
+    #[command(flatten)]
+    pub team: TeamArgs,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     #[arg(long)]
@@ -50,22 +71,15 @@ pub fn run(args: SimArgs) -> Result<()> {
         SimCommand::PcmSweep(a) => crate::bench::pcm_sweep::run(a)?,
         SimCommand::World(a) => run_world(a)?,
         SimCommand::Graph(a) => {
-            let config = SimConfig {
-                robots: a.robots,
-                poses_per_robot: a.poses,
-                outlier_fraction: a.outliers,
-                correlated_groups: a.correlated_groups,
-                seed: a.seed,
-                ..SimConfig::default()
-            };
+            let config = a.team.config(a.seed);
             let team = simulate(&config)?;
             write_dataset(&team, &a.out)?;
             let c = team.counts();
             println!(
                 "{}: {} robots x {} poses, {} inter-robot inliers, {} uniform + {} correlated outliers (fraction {:.3})",
                 a.out.display(),
-                a.robots,
-                a.poses,
+                a.team.robots,
+                a.team.poses,
                 c.inter_inliers,
                 c.uniform_outliers,
                 c.correlated_outliers,
