@@ -132,22 +132,7 @@ fn connected_to_first(
     closure_of_edge: &[usize],
 ) -> (PoseGraph<Isometry3<f64>>, Vec<usize>) {
     let n_odo = g.edges.len() - closure_of_edge.len();
-    let mut adj = vec![Vec::new(); g.len()];
-    for e in &g.edges {
-        adj[e.i].push(e.j);
-        adj[e.j].push(e.i);
-    }
-    let mut seen = vec![false; g.len()];
-    let mut stack = vec![0];
-    seen[0] = true;
-    while let Some(a) = stack.pop() {
-        for &b in &adj[a] {
-            if !seen[b] {
-                seen[b] = true;
-                stack.push(b);
-            }
-        }
-    }
+    let seen = g.reachable_from(0);
     let mut sub = PoseGraph::new();
     let mut new_index = vec![usize::MAX; g.len()];
     for (p, (&k, pose)) in g.keys().iter().zip(g.poses()).enumerate() {

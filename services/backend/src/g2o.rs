@@ -5,7 +5,6 @@
 //! Files without `VERTEX` lines (or with edges to poses that have none) get initial
 //! poses by chaining edges outward from the first pose (a spanning tree, file order).
 
-use std::collections::VecDeque;
 use std::io::Write;
 use std::path::Path;
 
@@ -311,7 +310,7 @@ fn assemble<G: LieGroup>(
     }
     let start = known.iter().position(|k| *k).unwrap_or(0);
     crate::init::chain(g, start, &known);
-    let reached = reached_from(g, start);
+    let reached = g.reachable_from(start);
     if let Some(p) = (0..g.len()).find(|&p| !reached[p]) {
         return Err(GraphError::Graph {
             file: file.into(),
@@ -322,27 +321,6 @@ fn assemble<G: LieGroup>(
         });
     }
     Ok(known)
-}
-
-/// Which poses are connected to `start` through edges.
-fn reached_from<G: LieGroup>(g: &PoseGraph<G>, start: usize) -> Vec<bool> {
-    let mut adj = vec![Vec::new(); g.len()];
-    for e in &g.edges {
-        adj[e.i].push(e.j);
-        adj[e.j].push(e.i);
-    }
-    let mut seen = vec![false; g.len()];
-    let mut queue = VecDeque::from([start]);
-    seen[start] = true;
-    while let Some(a) = queue.pop_front() {
-        for &b in &adj[a] {
-            if !seen[b] {
-                seen[b] = true;
-                queue.push_back(b);
-            }
-        }
-    }
-    seen
 }
 
 fn upper_triangle(m: &TangentMatrix, n: usize, order: &[usize]) -> Vec<f64> {

@@ -132,6 +132,30 @@ impl<G: LieGroup> PoseGraph<G> {
         }
     }
 
+    /// Which poses are connected to pose `start` through edges (in either direction).
+    pub fn reachable_from(&self, start: usize) -> Vec<bool> {
+        let mut adj = vec![Vec::new(); self.len()];
+        for e in &self.edges {
+            adj[e.i].push(e.j);
+            adj[e.j].push(e.i);
+        }
+        let mut seen = vec![false; self.len()];
+        if start >= self.len() {
+            return seen;
+        }
+        let mut stack = vec![start];
+        seen[start] = true;
+        while let Some(a) = stack.pop() {
+            for &b in &adj[a] {
+                if !seen[b] {
+                    seen[b] = true;
+                    stack.push(b);
+                }
+            }
+        }
+        seen
+    }
+
     /// χ² = Σ rᵀ Ω r with r = Log(Z⁻¹ Xᵢ⁻¹ Xⱼ) (twice GTSAM's `graph.error`).
     pub fn chi2(&self) -> f64 {
         self.edges.iter().map(|e| self.edge_chi2(e)).sum()

@@ -21,7 +21,7 @@ use nalgebra::{
 use crate::graph::{EdgeClass, PoseGraph};
 use crate::lie::{LieGroup, TangentMatrix};
 use crate::linear::SparseCholesky;
-use crate::solver::SolveError;
+use crate::solver::{var_of, SolveError};
 use crate::sparsity::BlockPattern;
 
 /// Sets every pose not marked `known` by composing edges breadth-first from `start`,
@@ -77,15 +77,6 @@ pub fn odometry<G: LieGroup>(graph: &mut PoseGraph<G>, anchor: usize) -> Result<
 pub trait Chordal: LieGroup {
     /// Replaces all poses but the anchor by the chordal estimate.
     fn chordal(graph: &mut PoseGraph<Self>, anchor: usize) -> Result<(), SolveError>;
-}
-
-fn var_of(p: usize, anchor: usize) -> Option<usize> {
-    use std::cmp::Ordering::*;
-    match p.cmp(&anchor) {
-        Less => Some(p),
-        Equal => None,
-        Greater => Some(p - 1),
-    }
 }
 
 /// Weights from an information matrix (rotation first, `d_rot` rotational dofs), as

@@ -112,7 +112,8 @@ pub struct Optimizer {
     linear: SparseCholesky,
 }
 
-fn var_of(p: usize, anchor: usize) -> Option<usize> {
+/// Index of pose `p` among the optimized variables (`None` for the fixed anchor).
+pub(crate) fn var_of(p: usize, anchor: usize) -> Option<usize> {
     use std::cmp::Ordering::*;
     match p.cmp(&anchor) {
         Less => Some(p),
@@ -234,23 +235,7 @@ fn add_gradient(g: &mut [f64], var: usize, d: usize, v: &Tangent) {
 }
 
 fn check_connected<G: LieGroup>(graph: &PoseGraph<G>, anchor: usize) -> Result<(), SolveError> {
-    let mut adj = vec![Vec::new(); graph.len()];
-    for e in &graph.edges {
-        adj[e.i].push(e.j);
-        adj[e.j].push(e.i);
-    }
-    let mut seen = vec![false; graph.len()];
-    let mut stack = vec![anchor];
-    seen[anchor] = true;
-    while let Some(a) = stack.pop() {
-        for &b in &adj[a] {
-            if !seen[b] {
-                seen[b] = true;
-                stack.push(b);
-            }
-        }
-    }
-    match seen.iter().position(|s| !s) {
+    match graph.reachable_from(anchor).iter().position(|s| !s) {
         Some(p) => Err(SolveError::Disconnected(p)),
         None => Ok(()),
     }
