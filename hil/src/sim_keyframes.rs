@@ -59,6 +59,9 @@ pub fn run(config: &SimKeyframesConfig) -> Result<SimKeyframesReport, SimKeyfram
     let mut previous: Option<(u64, Isometry3<f64>)> = None;
     while lifecycle.keep_going(&node) {
         let Some(sample) = frames.recv_timeout(Duration::from_millis(100))? else {
+            // Idle: a consumer restarted since the last keyframe gets what it missed now.
+            keyframes.catch_up_receivers()?;
+            odometry.catch_up_receivers()?;
             continue;
         };
         let h = *sample.payload().header();
@@ -75,7 +78,9 @@ pub fn run(config: &SimKeyframesConfig) -> Result<SimKeyframesReport, SimKeyfram
             return Err(SimKeyframesError::NoTruth { seq: h.seq });
         }
         let pose = pose_from_array(&h.truth_pose);
-        let id = report.keyframes;
+        // Ids follow the frame sequence, so a restarted sim-keyframes continues the
+        // numbering instead of reusing ids the back-end already has.
+        let id = h.seq / config.every;
         keyframes.send_with(|slot| {
             slot.write(Keyframe {
                 robot: config.robot_index,

@@ -9,11 +9,8 @@
 //! - [`service`]: service names per robot (`doorslam/<robot>/<topic>`), opening the
 //!   services with the settings every process must agree on, and stale-resource cleanup.
 //!
-//! - [`channel`]: typed senders/receivers with event notification and the back-pressure
-//!   policy (frames lossy, everything else reliable).
-//!
-//! - [`channel`]: typed senders/receivers with event notification and the back-pressure
-//!   policy (frames lossy, everything else reliable).
+//! - [`channel`]: typed senders/receivers with event notification, the back-pressure
+//!   policy (frames lossy, everything else reliable) and crash recovery (history).
 //!
 //! Inter-robot wire messages (Zenoh) will live in `wire/` beside these.
 
@@ -23,7 +20,7 @@ pub mod pose;
 pub mod service;
 pub mod shm;
 
-pub use channel::{Receiver, Sender, RELIABLE_BUFFER};
+pub use channel::{Receiver, Sender, RELIABLE_BUFFER, RELIABLE_HISTORY};
 pub use lifecycle::{sd_notify, Lifecycle};
 pub use pose::{matrix_from_upper, pose_from_array, pose_to_array, upper_from_diagonal};
 pub use service::{

@@ -19,6 +19,8 @@ pub enum IpcError {
     Service { service: String, reason: String },
     #[error("iceoryx2 service {service:?} was created by a process built with another doorslam-ipc schema (this build: v{}); restart all services of the robot from the same build", crate::shm::SCHEMA_VERSION)]
     SchemaMismatch { service: String },
+    #[error("iceoryx2 service {service:?}: every sample is in flight (receivers hold them all); nothing was sent")]
+    NoRoom { service: String },
     #[error("iceoryx2 service {service:?}: could not fill the sample: {reason}")]
     Payload { service: String, reason: String },
 }

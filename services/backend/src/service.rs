@@ -2,9 +2,10 @@
 //! journals each one (fsync) before applying it, keeps the pose graph, re-optimizes it
 //! warm-started every few keyframes and publishes the latest pose estimate.
 //!
-//! Ordering: keyframe ids must arrive consecutively. A keyframe already in the graph (an
-//! upstream service re-sent it after a restart) is skipped and counted; a gap is logged
-//! (it means an upstream service lost data) and accepted.
+//! Ordering: keyframe ids must arrive consecutively. A keyframe or odometry edge already in
+//! the graph is skipped and counted as a duplicate: a restarted back-end is first handed
+//! the publishers' history (see `doorslam_ipc::channel`), most of which it journaled before
+//! it died. A gap is logged (it means an upstream service lost data) and accepted.
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -52,6 +53,7 @@ pub struct BackendReport {
     pub truncated_bytes: u64,
     pub accepted_keyframes: usize,
     pub accepted_edges: usize,
+    /// Keyframes and edges received again (history handed to a restarted back-end).
     pub duplicates: usize,
     pub gaps: usize,
 }
@@ -61,10 +63,12 @@ struct State {
     robot: u8,
     graph: PoseGraph<Isometry3<f64>>,
     next_id: Option<u64>,
+    /// Odometry edges in the graph, by (from, to) keyframe id.
+    odometry: std::collections::HashSet<(u64, u64)>,
 }
 
 impl State {
-    /// Applies an entry; returns false for a duplicate keyframe or an edge to unknown poses.
+    /// Applies an entry; returns false for a duplicate or an edge to unknown poses.
     fn apply(&mut self, e: &Entry) -> bool {
         match e {
             Entry::Keyframe { id, pose, .. } => {
@@ -87,7 +91,7 @@ impl State {
                     self.graph.index_of(key::symbol(self.robot, *to)),
                 );
                 match (a, b) {
-                    (Some(a), Some(b)) if a != b => {
+                    (Some(a), Some(b)) if a != b && self.odometry.insert((*from, *to)) => {
                         self.graph.add_edge(
                             a,
                             b,
@@ -115,6 +119,7 @@ pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
         robot,
         graph: PoseGraph::new(),
         next_id: None,
+        odometry: Default::default(),
     };
     let mut report = BackendReport {
         truncated_bytes: recovery.truncated_bytes,
@@ -201,7 +206,9 @@ pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
             let Entry::Odometry { from, to, .. } = entry else {
                 continue;
             };
-            if known(&state, from) && known(&state, to) {
+            if state.odometry.contains(&(from, to)) {
+                report.duplicates += 1;
+            } else if known(&state, from) && known(&state, to) {
                 journal.append(&entry)?;
                 state.apply(&entry);
                 report.accepted_edges += 1;

@@ -1,89 +1,44 @@
-//! iceoryx2: the real frame service (`open_frames`: safe overflow, buffer 2), with the
-//! subscriber either spinning on `receive()` or blocked on an iceoryx2 event listener
-//! that the publisher notifies after each send.
+//! iceoryx2 through the services' own channel (`doorslam_ipc::{Sender, Receiver}` on the
+//! frames topic: safe overflow, buffer 2, an event service beside it), so the benchmark
+//! measures exactly the path the camera and its consumers use. The subscriber either
+//! spins on `try_recv()` or sleeps in `recv_timeout()` until the publisher's notification.
 
 use std::hint::spin_loop;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context, Result};
-use doorslam_ipc::iceoryx2::port::listener::Listener;
-use doorslam_ipc::iceoryx2::port::notifier::Notifier;
-use doorslam_ipc::iceoryx2::port::LoanError;
 use doorslam_ipc::iceoryx2::prelude::*;
-use doorslam_ipc::iceoryx2::service::port_factory::event::PortFactory as EventFactory;
-use doorslam_ipc::iceoryx2::service::port_factory::publish_subscribe::PortFactory;
-use doorslam_ipc::{
-    create_node, open_frames, service_name, FrameHeader, FramePublisher, FrameSubscriber,
-    StereoFrame, Topic,
-};
+use doorslam_ipc::{create_node, FrameHeader, IpcError, Receiver, Sender, StereoFrame, Topic};
 
 use super::{Delivered, PeerEndpoint, Phase, Publish, Receive};
 use crate::bench::measure::{mapping_of_range, mono_ns, thread_cpu_ns, Mapping};
 
-type FrameFactory = PortFactory<ipc::Service, StereoFrame, ()>;
-
-/// The wake-up service beside the frames: `doorslam/<robot>/frames/ready`.
-fn open_ready(node: &Node<ipc::Service>, robot: &str) -> Result<EventFactory<ipc::Service>> {
-    let name = format!("{}/ready", service_name(robot, Topic::Frames));
-    let service_name: ServiceName = name
-        .as_str()
-        .try_into()
-        .map_err(|e| anyhow!("event service name {name:?}: {e:?}"))?;
-    node.service_builder(&service_name)
-        .event()
-        .open_or_create()
-        .map_err(|e| anyhow!("iceoryx2 event service {name:?}: {e:?}"))
-}
-
 pub struct IceoryxPublisher {
-    publisher: FramePublisher,
-    notifier: Option<Notifier<ipc::Service>>,
+    sender: Sender<StereoFrame>,
     mapping: Option<Mapping>,
     copy_cpu_ns: u64,
     width: u32,
     height: u32,
-    // Dropped last: ports before their services, services before the node.
-    _event: Option<EventFactory<ipc::Service>>,
-    _frames: FrameFactory,
+    // Dropped last: ports before the node.
     _node: Node<ipc::Service>,
 }
 
 impl IceoryxPublisher {
-    pub fn open(
-        tag: &str,
-        notify: bool,
-        width: u32,
-        height: u32,
-    ) -> Result<(Box<dyn Publish>, PeerEndpoint)> {
+    /// The channel always notifies; with a spinning receiver that never consumes the
+    /// notification, iceoryx2 skips the system call (the listener is still "notified").
+    pub fn open(tag: &str, width: u32, height: u32) -> Result<(Box<dyn Publish>, PeerEndpoint)> {
         let (node, _) = create_node("doorslam-bench-publisher")?;
-        let frames = open_frames(&node, tag)?;
-        let publisher = frames
-            .publisher_builder()
-            .create()
-            .map_err(|e| anyhow!("iceoryx2 publisher on {tag}: {e:?}"))?;
-        let (event, notifier) = if notify {
-            let event = open_ready(&node, tag)?;
-            let notifier = event
-                .notifier_builder()
-                .create()
-                .map_err(|e| anyhow!("iceoryx2 notifier on {tag}: {e:?}"))?;
-            (Some(event), Some(notifier))
-        } else {
-            (None, None)
-        };
+        let sender = Sender::<StereoFrame>::new(&node, tag, Topic::Frames)?;
         let endpoint = PeerEndpoint {
             name: tag.to_string(),
             ..PeerEndpoint::default()
         };
         let me = Self {
-            publisher,
-            notifier,
+            sender,
             mapping: None,
             copy_cpu_ns: 0,
             width,
             height,
-            _event: event,
-            _frames: frames,
             _node: node,
         };
         Ok((Box::new(me), endpoint))
@@ -92,16 +47,10 @@ impl IceoryxPublisher {
 
 impl Publish for IceoryxPublisher {
     fn publish(&mut self, phase: Phase, seq: u64, left: &[u8], right: &[u8]) -> Result<bool> {
-        let (width, height) = if phase == Phase::End {
-            (0, 0)
+        let (width, height, l, r) = if phase == Phase::End {
+            (0, 0, &[][..], &[][..])
         } else {
-            (self.width, self.height)
-        };
-        let mut sample = match self.publisher.loan_uninit() {
-            Ok(sample) => sample,
-            // Every sample is in flight: the transport has no room right now.
-            Err(LoanError::OutOfMemory | LoanError::ExceedsMaxLoans) => return Ok(false),
-            Err(e) => return Err(anyhow!("iceoryx2 loan: {e:?}")),
+            (self.width, self.height, left, right)
         };
         let header = FrameHeader {
             seq,
@@ -113,37 +62,32 @@ impl Publish for IceoryxPublisher {
             height,
             ..FrameHeader::default()
         };
-        let (l, r) = if phase == Phase::End {
-            (&[][..], &[][..])
-        } else {
-            (left, right)
-        };
-        let slot = sample.payload_mut();
-        let copy_start = (phase == Phase::Paced).then(thread_cpu_ns);
-        // The one copy: source images straight into the loaned shared-memory sample.
-        StereoFrame::write(slot, header, l, r)?;
-        if let Some(t0) = copy_start {
-            self.copy_cpu_ns += thread_cpu_ns().saturating_sub(t0);
+        let (mapping, copy_cpu_ns) = (&mut self.mapping, &mut self.copy_cpu_ns);
+        let sent = self.sender.send_with(|slot| {
+            let copy_start = (phase == Phase::Paced).then(thread_cpu_ns);
+            // The one copy: source images straight into the loaned shared-memory sample.
+            StereoFrame::write(slot, header, l, r)?;
+            if let Some(t0) = copy_start {
+                *copy_cpu_ns += thread_cpu_ns().saturating_sub(t0);
+            }
+            if mapping.is_none() && phase == Phase::Warmup {
+                let addr = slot.as_ptr() as usize;
+                *mapping = mapping_of_range(&mut None, addr, std::mem::size_of::<StereoFrame>());
+            }
+            let header_ptr = slot.as_mut_ptr().cast::<FrameHeader>();
+            // SAFETY: StereoFrame is #[repr(C)] with `header: FrameHeader` as its first
+            // field (ipc-schema's cross-process layout contract), so the frame pointer is a
+            // valid pointer to its initialized header. The stamp is written after the image
+            // copy so the latency measures the transport, not the memcpy.
+            unsafe { std::ptr::addr_of_mut!((*header_ptr).stamp_ns).write(mono_ns()) };
+            Ok::<(), doorslam_ipc::FrameError>(())
+        });
+        match sent {
+            Ok(()) => Ok(true),
+            // Every sample is in flight: the transport has no room right now.
+            Err(IpcError::NoRoom { .. }) => Ok(false),
+            Err(e) => Err(anyhow!(e)),
         }
-        if self.mapping.is_none() && phase == Phase::Warmup {
-            let addr = slot.as_ptr() as usize;
-            self.mapping = mapping_of_range(&mut None, addr, std::mem::size_of::<StereoFrame>());
-        }
-        let header_ptr = slot.as_mut_ptr().cast::<FrameHeader>();
-        // SAFETY: StereoFrame is #[repr(C)] with `header: FrameHeader` as its first field
-        // (ipc-schema's cross-process layout contract), so the frame pointer is a valid
-        // pointer to its initialized header. The stamp is written after the image copy
-        // so the latency measures the transport, not the memcpy.
-        unsafe { std::ptr::addr_of_mut!((*header_ptr).stamp_ns).write(mono_ns()) };
-        // SAFETY: `StereoFrame::write` initialized the sample.
-        let sample = unsafe { sample.assume_init() };
-        sample.send().map_err(|e| anyhow!("iceoryx2 send: {e:?}"))?;
-        if let Some(notifier) = &self.notifier {
-            notifier
-                .notify()
-                .map_err(|e| anyhow!("iceoryx2 notify: {e:?}"))?;
-        }
-        Ok(true)
     }
 
     fn payload_mapping(&self) -> Option<Mapping> {
@@ -156,67 +100,53 @@ impl Publish for IceoryxPublisher {
 }
 
 pub struct IceoryxReceiver {
-    subscriber: FrameSubscriber,
-    listener: Option<Listener<ipc::Service>>,
-    _event: Option<EventFactory<ipc::Service>>,
-    _frames: FrameFactory,
+    receiver: Receiver<StereoFrame>,
+    sleep_on_event: bool,
     _node: Node<ipc::Service>,
 }
 
 impl IceoryxReceiver {
-    pub fn open(endpoint: &PeerEndpoint, wait_on_event: bool) -> Result<Self> {
+    pub fn open(endpoint: &PeerEndpoint, sleep_on_event: bool) -> Result<Self> {
         let robot = endpoint.name.as_str();
         let (node, _) = create_node("doorslam-bench-subscriber")?;
-        let frames = open_frames(&node, robot)?;
-        let subscriber = frames
-            .subscriber_builder()
-            .create()
-            .map_err(|e| anyhow!("iceoryx2 subscriber on {robot}: {e:?}"))?;
-        let (event, listener) = if wait_on_event {
-            let event = open_ready(&node, robot)?;
-            let listener = event
-                .listener_builder()
-                .create()
-                .map_err(|e| anyhow!("iceoryx2 listener on {robot}: {e:?}"))?;
-            (Some(event), Some(listener))
-        } else {
-            (None, None)
-        };
+        let receiver = Receiver::<StereoFrame>::new(&node, robot, Topic::Frames)?;
         Ok(Self {
-            subscriber,
-            listener,
-            _event: event,
-            _frames: frames,
+            receiver,
+            sleep_on_event,
             _node: node,
         })
+    }
+
+    fn deliver(
+        sample: &doorslam_ipc::iceoryx2::sample::Sample<ipc::Service, StereoFrame, ()>,
+        on_frame: &mut dyn FnMut(&Delivered<'_>),
+    ) -> Result<()> {
+        let recv_ns = mono_ns();
+        let frame = sample.payload();
+        let h = *frame.header();
+        let Some(phase) = Phase::from_u32(h.camera) else {
+            return Ok(());
+        };
+        // The images are read where the publisher wrote them: slices into the sample.
+        let left = frame.left_image().context("received frame")?;
+        let right = frame.right_image().context("received frame")?;
+        on_frame(&Delivered {
+            phase,
+            stamp_ns: Some(h.stamp_ns),
+            recv_ns,
+            left,
+            right,
+            shm_claim: None,
+        });
+        Ok(())
     }
 
     /// Hands every queued sample to `on_frame`; returns how many there were.
     fn drain(&self, on_frame: &mut dyn FnMut(&Delivered<'_>)) -> Result<usize> {
         let mut n = 0;
-        while let Some(sample) = self
-            .subscriber
-            .receive()
-            .map_err(|e| anyhow!("iceoryx2 receive: {e:?}"))?
-        {
-            let recv_ns = mono_ns();
+        while let Some(sample) = self.receiver.try_recv()? {
             n += 1;
-            let frame = sample.payload();
-            let h = *frame.header();
-            let Some(phase) = Phase::from_u32(h.camera) else {
-                continue;
-            };
-            // The images are read where the publisher wrote them: slices into the sample.
-            let left = frame.left_image().context("received frame")?;
-            let right = frame.right_image().context("received frame")?;
-            on_frame(&Delivered {
-                phase,
-                stamp_ns: Some(h.stamp_ns),
-                recv_ns,
-                left,
-                right,
-                shm_claim: None,
-            });
+            Self::deliver(&sample, on_frame)?;
         }
         Ok(n)
     }
@@ -228,12 +158,13 @@ impl Receive for IceoryxReceiver {
         timeout: Duration,
         on_frame: &mut dyn FnMut(&Delivered<'_>),
     ) -> Result<()> {
-        if let Some(listener) = &self.listener {
-            // Sleeps in the kernel until notified; the samples are then drained.
-            listener
-                .timed_wait(|_| {}, timeout)
-                .map_err(|e| anyhow!("iceoryx2 listener wait: {e:?}"))?;
-            self.drain(on_frame)?;
+        if self.sleep_on_event {
+            // What every service does: sleep in the kernel until notified, then drain.
+            if let Some(sample) = self.receiver.recv_timeout(timeout)? {
+                Self::deliver(&sample, on_frame)?;
+                drop(sample);
+                self.drain(on_frame)?;
+            }
             return Ok(());
         }
         let deadline = Instant::now() + timeout;

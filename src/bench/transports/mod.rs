@@ -206,8 +206,8 @@ pub fn open_publisher(
     height: u32,
 ) -> Result<(Box<dyn Publish>, PeerEndpoint)> {
     Ok(match transport {
-        Transport::Iceoryx2Poll => iceoryx2::IceoryxPublisher::open(tag, false, width, height)?,
-        Transport::Iceoryx2Event => iceoryx2::IceoryxPublisher::open(tag, true, width, height)?,
+        Transport::Iceoryx2Poll => iceoryx2::IceoryxPublisher::open(tag, width, height)?,
+        Transport::Iceoryx2Event => iceoryx2::IceoryxPublisher::open(tag, width, height)?,
         Transport::EventfdFloor => eventfd::EventfdPublisher::open()?,
         Transport::ZenohShm => zenoh_shm::ZenohPublisher::open(tag, width, height)?,
         Transport::UnixSocket => unix_socket::SocketPublisher::open(tag, width, height)?,
