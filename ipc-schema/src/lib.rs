@@ -28,8 +28,8 @@ pub use service::{
     IpcError, Topic,
 };
 pub use shm::{
-    Feature, FrameError, FrameHeader, Keyframe, KeyframeSource, LoopClosure, OdometryEdge,
-    PlaceDescriptor, PoseEstimate, StereoFrame, FRAME_HAS_TRUTH, MAX_DESCRIPTOR_DIM,
+    Feature, FrameError, FrameHeader, ImageWriter, Keyframe, KeyframeSource, LoopClosure,
+    OdometryEdge, PlaceDescriptor, PoseEstimate, StereoFrame, FRAME_HAS_TRUTH, MAX_DESCRIPTOR_DIM,
     MAX_FRAME_HEIGHT, MAX_FRAME_PIXELS, MAX_FRAME_WIDTH, MAX_KEYFRAME_FEATURES, SCHEMA_VERSION,
 };
 

@@ -79,6 +79,69 @@ pub enum FrameError {
         width: u32,
         height: u32,
     },
+    #[error("{side} image: more than the {want} bytes of a {width}x{height} image written")]
+    Overflow {
+        side: &'static str,
+        want: usize,
+        width: u32,
+        height: u32,
+    },
+}
+
+/// Appends the bytes of one image straight into a loaned frame, never past its end; the
+/// frame is only sent if both images were filled exactly (see [`StereoFrame::write_with`]).
+pub struct ImageWriter<'a> {
+    side: &'static str,
+    dst: &'a mut [MaybeUninit<u8>],
+    len: usize,
+    width: u32,
+    height: u32,
+}
+
+impl ImageWriter<'_> {
+    fn overflow(&self) -> FrameError {
+        FrameError::Overflow {
+            side: self.side,
+            want: self.dst.len(),
+            width: self.width,
+            height: self.height,
+        }
+    }
+
+    /// Appends `src` (one memcpy).
+    pub fn extend_from_slice(&mut self, src: &[u8]) -> Result<(), FrameError> {
+        let end = self.len + src.len();
+        let Some(dst) = self.dst.get_mut(self.len..end) else {
+            return Err(self.overflow());
+        };
+        // SAFETY: `dst` has exactly src.len() elements; u8 and MaybeUninit<u8> have the
+        // same layout; the source is an ordinary slice, so the two cannot overlap.
+        unsafe { core::ptr::copy_nonoverlapping(src.as_ptr(), dst.as_mut_ptr().cast(), src.len()) };
+        self.len = end;
+        Ok(())
+    }
+
+    /// Appends every byte of `bytes` (e.g. every other byte of a YUYV row: its luma).
+    pub fn extend(&mut self, bytes: impl IntoIterator<Item = u8>) -> Result<(), FrameError> {
+        for b in bytes {
+            let Some(slot) = self.dst.get_mut(self.len) else {
+                return Err(self.overflow());
+            };
+            slot.write(b);
+            self.len += 1;
+        }
+        Ok(())
+    }
+
+    /// Bytes written so far.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// Nothing written yet.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
 }
 
 impl FrameHeader {
@@ -115,29 +178,55 @@ impl StereoFrame {
         left: &[u8],
         right: &[u8],
     ) -> Result<(), FrameError> {
+        Self::write_with(slot, header, |l, r| {
+            l.extend_from_slice(left)?;
+            r.extend_from_slice(right)
+        })
+    }
+
+    /// As [`Self::write`], with the images produced in place by `fill` (e.g. the luma of
+    /// a camera's YUYV buffer, or the halves of a side-by-side image): no intermediate
+    /// buffer. Fails unless `fill` wrote exactly `width * height` bytes to each image.
+    pub fn write_with<E: From<FrameError>>(
+        slot: &mut MaybeUninit<StereoFrame>,
+        header: FrameHeader,
+        fill: impl FnOnce(&mut ImageWriter<'_>, &mut ImageWriter<'_>) -> Result<(), E>,
+    ) -> Result<(), E> {
         let n = header.pixels()?;
-        for (side, img) in [("left", left), ("right", right)] {
-            if img.len() != n {
+        let p = slot.as_mut_ptr();
+        // SAFETY: `p` points to a valid (uninitialized) StereoFrame; the two image arrays
+        // are disjoint fields of it, each MAX_FRAME_PIXELS >= n elements of MaybeUninit<u8>
+        // (any bit pattern, so forming slices over them is sound).
+        let (left, right) = unsafe {
+            (
+                core::slice::from_raw_parts_mut(core::ptr::addr_of_mut!((*p).left).cast(), n),
+                core::slice::from_raw_parts_mut(core::ptr::addr_of_mut!((*p).right).cast(), n),
+            )
+        };
+        let writer = |side, dst| ImageWriter {
+            side,
+            dst,
+            len: 0,
+            width: header.width,
+            height: header.height,
+        };
+        let (mut l, mut r) = (writer("left", left), writer("right", right));
+        fill(&mut l, &mut r)?;
+        for w in [&l, &r] {
+            if w.len != n {
                 return Err(FrameError::WrongLength {
-                    side,
-                    got: img.len(),
+                    side: w.side,
+                    got: w.len,
                     want: n,
                     width: header.width,
                     height: header.height,
-                });
+                }
+                .into());
             }
         }
-        let p = slot.as_mut_ptr();
-        // SAFETY: `p` points to a valid (uninitialized) StereoFrame; we only write through
-        // raw pointers, `n` <= MAX_FRAME_PIXELS was checked, and the sources do not overlap
-        // the destination (they are ordinary slices, the destination is the sample).
-        unsafe {
-            core::ptr::addr_of_mut!((*p).header).write(header);
-            let l = core::ptr::addr_of_mut!((*p).left) as *mut u8;
-            core::ptr::copy_nonoverlapping(left.as_ptr(), l, n);
-            let r = core::ptr::addr_of_mut!((*p).right) as *mut u8;
-            core::ptr::copy_nonoverlapping(right.as_ptr(), r, n);
-        }
+        // SAFETY: as above; the header is plain data written in place. Only now, with
+        // both images complete, does the frame get a header that makes them readable.
+        unsafe { core::ptr::addr_of_mut!((*p).header).write(header) };
         Ok(())
     }
 
@@ -149,7 +238,8 @@ impl StereoFrame {
     /// The left image (`width * height` bytes, row-major).
     pub fn left_image(&self) -> Result<&[u8], FrameError> {
         let n = self.header.pixels()?;
-        // SAFETY: frames are only filled by `write`, which initialized the first `n` bytes.
+        // SAFETY: frames are only filled by `write_with`, which checks that the first `n` bytes
+        // of each image were written before it writes the header that declares them.
         Ok(unsafe { core::slice::from_raw_parts(self.left.as_ptr() as *const u8, n) })
     }
 

@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 
 use super::child::PeerProcess;
-use super::measure::{cpu_ns, mono_ns, test_image};
+use super::measure::{cpu_ns, mono_ns, pin_to_cpu, test_image};
 use super::peer::PeerReport;
 use super::report::{check_targets, loadavg, IpcReport, Machine, ResultRow, Settings};
 use super::transports::{open_publisher, PeerEndpoint, Phase, Publish, Transport};
@@ -35,6 +35,10 @@ pub struct IpcOptions {
     pub seconds_per_case: f64,
     /// Most latency samples per case.
     pub frames: usize,
+    /// Interleaved repetitions of every case; figures are medians over them.
+    pub rounds: usize,
+    /// CPUs to pin the publisher and the subscriber process to.
+    pub pin_cpus: Option<(usize, usize)>,
 }
 
 fn method() -> Vec<String> {
@@ -49,6 +53,7 @@ fn method() -> Vec<String> {
         "zero_copy: both processes look up the payload address in /proc/self/maps; true iff the publisher's write target and every image the subscriber checksummed in place lie in a shared (s) mapping of the same memory object (device + inode)",
         "zenoh_shm: peer sessions over tcp/127.0.0.1 with Zenoh's SHM transport; the publisher puts a POSIX SHM buffer (ShmProvider), the subscriber reads ZBytes::as_shm() in place",
         "eventfd_floor: no payload; an eventfd inherited by the subscriber, written by the publisher (stamp in the counter), read after poll(); pairs_per_s = wake-ups/s",
+        "rounds: every case runs `rounds` times, interleaved (each transport once per round, in the same order); each figure of a row is the median over its rounds, counts are sums; p99_us_rounds lists every round's p99_us, and the event/floor target is the median of the per-round ratios (the two ran seconds apart in each round)",
     ]
     .iter()
     .map(|s| s.to_string())
@@ -58,21 +63,35 @@ fn method() -> Vec<String> {
 /// Runs every case; a failing case becomes a row with `error` set and the run goes on.
 pub fn run(opts: &IpcOptions, progress: &dyn Fn(&str)) -> Result<IpcReport> {
     let mut machine = Machine::probe();
+    if let Some((publisher, _)) = opts.pin_cpus {
+        pin_to_cpu(publisher).with_context(|| format!("pin the publisher to CPU {publisher}"))?;
+    }
     let mut results = Vec::new();
     let mut case = 0;
+    let rounds = opts.rounds.max(1);
     for (w, h) in RESOLUTIONS {
         let left = test_image(w, h, 0);
         let right = test_image(w, h, 1);
-        for transport in Transport::ALL {
-            case += 1;
-            progress(&format!("{} {w}x{h}", transport.name()));
-            let mut row = match run_case(transport, w, h, case, opts, &left, &right) {
-                Ok(row) => row,
-                Err(e) => ResultRow {
-                    error: Some(format!("{e:#}")),
-                    ..ResultRow::default()
-                },
-            };
+        let mut by_transport: Vec<Vec<ResultRow>> = vec![Vec::new(); Transport::ALL.len()];
+        for round in 1..=rounds {
+            for (k, transport) in Transport::ALL.into_iter().enumerate() {
+                case += 1;
+                progress(&format!(
+                    "{} {w}x{h} (round {round} of {rounds})",
+                    transport.name()
+                ));
+                let row = match run_case(transport, w, h, case, opts, &left, &right) {
+                    Ok(row) => row,
+                    Err(e) => ResultRow {
+                        error: Some(format!("{e:#}")),
+                        ..ResultRow::default()
+                    },
+                };
+                by_transport[k].push(row);
+            }
+        }
+        for (transport, runs) in Transport::ALL.into_iter().zip(by_transport) {
+            let mut row = combine_rounds(runs);
             row.transport = transport.name().to_string();
             row.resolution = format!("{w}x{h}");
             results.push(row);
@@ -91,11 +110,66 @@ pub fn run(opts: &IpcOptions, progress: &dyn Fn(&str)) -> Result<IpcReport> {
             latency_frames_max: opts.frames,
             latency_pace_us: LATENCY_PACE.as_micros() as u64,
             paced_hz: PACED_HZ,
+            rounds,
+            pin_cpus: opts.pin_cpus.map(|(a, b)| [a, b]),
             method: method(),
         },
         results,
         targets,
     })
+}
+
+/// Median of the values present (the lower middle one for an even count).
+fn median(values: impl IntoIterator<Item = Option<f64>>) -> Option<f64> {
+    let mut v: Vec<f64> = values.into_iter().flatten().collect();
+    v.sort_by(f64::total_cmp);
+    (!v.is_empty()).then(|| v[(v.len() - 1) / 2])
+}
+
+/// One row from a case's rounds: every figure is the median over the rounds that did not
+/// fail, counts are summed, zero-copy must hold in every round; the per-round p99s are
+/// kept (targets compare transports round by round). If every round failed, the first
+/// failure is the row.
+fn combine_rounds(runs: Vec<ResultRow>) -> ResultRow {
+    let rounds = runs.len();
+    let p99_us_rounds = runs.iter().map(|r| r.p99_us).collect();
+    let p99_us_30hz_rounds = runs.iter().map(|r| r.p99_us_30hz).collect();
+    let (ok, failed): (Vec<ResultRow>, Vec<ResultRow>) =
+        runs.into_iter().partition(|r| r.error.is_none());
+    let Some(first) = ok.first() else {
+        let mut row = failed.into_iter().next().unwrap_or_default();
+        row.rounds = rounds;
+        return row;
+    };
+    let med = |f: fn(&ResultRow) -> Option<f64>| median(ok.iter().map(f));
+    let sum = |f: fn(&ResultRow) -> u64| ok.iter().map(f).sum::<u64>();
+    ResultRow {
+        p50_us: med(|r| r.p50_us),
+        p99_us: med(|r| r.p99_us),
+        pairs_per_s: med(|r| r.pairs_per_s),
+        zero_copy: ok
+            .iter()
+            .map(|r| r.zero_copy)
+            .reduce(|a, b| a.zip(b).map(|(a, b)| a && b))
+            .flatten(),
+        samples: sum(|r| r.samples),
+        drops: sum(|r| r.drops),
+        cpu_us_per_frame_30hz: med(|r| r.cpu_us_per_frame_30hz),
+        cpu_percent_30hz: med(|r| r.cpu_percent_30hz),
+        copy_us_per_frame_30hz: med(|r| r.copy_us_per_frame_30hz),
+        transport_cpu_percent_30hz: med(|r| r.transport_cpu_percent_30hz),
+        p50_us_30hz: med(|r| r.p50_us_30hz),
+        p99_us_30hz: med(|r| r.p99_us_30hz),
+        sent: sum(|r| r.sent),
+        received: sum(|r| r.received),
+        checksum_errors: sum(|r| r.checksum_errors),
+        payload_mapping: first.payload_mapping.clone(),
+        rounds,
+        p99_us_rounds,
+        p99_us_30hz_rounds,
+        error: None,
+        ..ResultRow::default()
+    }
 }
 
 fn peer_args(
@@ -164,7 +238,11 @@ fn run_case(
     let (mut publisher, endpoint) = open_publisher(transport, &tag, w, h)
         .with_context(|| format!("open the {} publisher", transport.name()))?;
     let deadline = 3.0 * opts.seconds_per_case + 90.0;
-    let mut peer = PeerProcess::spawn(&peer_args(transport, w, h, &endpoint, deadline))?;
+    let mut args = peer_args(transport, w, h, &endpoint, deadline);
+    if let Some((_, cpu)) = opts.pin_cpus {
+        args.extend(["--pin-cpu".to_string(), cpu.to_string()]);
+    }
+    let mut peer = PeerProcess::spawn(&args)?;
     peer.expect("ready", PEER_START)?;
     publisher.accept_peer(Instant::now() + PEER_START)?;
 

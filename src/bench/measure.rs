@@ -20,6 +20,28 @@ fn clock_ns(clock: libc::clockid_t) -> u64 {
 /// CLOCK_MONOTONIC in nanoseconds: unlike `std::time::Instant`, its value means the same
 /// in every process of the machine, so a stamp written by one process can be subtracted
 /// from a reading taken in another.
+/// Restricts the calling process (its threads created from now on, and this one) to one
+/// CPU, so publisher and subscriber cannot be placed on the same core by the scheduler.
+pub fn pin_to_cpu(cpu: usize) -> io::Result<()> {
+    if cpu >= libc::CPU_SETSIZE as usize {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            format!("CPU {cpu} out of range"),
+        ));
+    }
+    // SAFETY: a zeroed cpu_set_t is the empty set; CPU_SET stays in bounds (checked above);
+    // sched_setaffinity reads the set for the call only.
+    let rc = unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        libc::CPU_SET(cpu, &mut set);
+        libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set)
+    };
+    if rc != 0 {
+        return Err(io::Error::last_os_error());
+    }
+    Ok(())
+}
+
 pub fn mono_ns() -> u64 {
     clock_ns(libc::CLOCK_MONOTONIC)
 }

@@ -22,6 +22,8 @@ pub struct PeerSpec {
     pub endpoint: PeerEndpoint,
     /// The peer gives up and reports after this long, whatever happens.
     pub deadline: Duration,
+    /// Pin this process to one CPU.
+    pub pin_cpu: Option<usize>,
 }
 
 /// One phase as the peer saw it.
@@ -195,6 +197,10 @@ impl Stats {
 
 /// Runs the peer until the end marker or the deadline, then prints its report.
 pub fn run_peer(spec: &PeerSpec) -> Result<()> {
+    if let Some(cpu) = spec.pin_cpu {
+        super::measure::pin_to_cpu(cpu)
+            .map_err(|e| anyhow::anyhow!("pin the subscriber to CPU {cpu}: {e}"))?;
+    }
     let mut receiver = open_receiver(spec.transport, &spec.endpoint)?;
     let mut stats = Stats::new(spec);
     println!("ready");

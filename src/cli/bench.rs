@@ -35,6 +35,28 @@ pub struct IpcArgs {
     /// Most latency samples per case (pairs paced 2 ms apart).
     #[arg(long, default_value_t = 1000)]
     pub frames: usize,
+    /// Times each case is run, interleaved (all transports once, then again, ...); each
+    /// row is the round with the median p99, so a burst of load on the 2 cores hits the
+    /// transports alike instead of one of them.
+    #[arg(long, default_value_t = 3)]
+    pub rounds: usize,
+    /// Pin the publisher and the subscriber process to these two CPUs ("0,1"), instead of
+    /// letting the scheduler place them (it often wakes the subscriber on the publisher's
+    /// core, which favours some wake-up mechanisms over others).
+    #[arg(long, value_parser = parse_cpu_pair)]
+    pub pin_cpus: Option<(usize, usize)>,
+}
+
+fn parse_cpu_pair(s: &str) -> Result<(usize, usize), String> {
+    let (a, b) = s
+        .split_once(',')
+        .ok_or_else(|| format!("{s:?}: expected two CPU numbers, e.g. 0,1"))?;
+    let cpu = |v: &str| {
+        v.trim()
+            .parse::<usize>()
+            .map_err(|e| format!("{v:?} is not a CPU number: {e}"))
+    };
+    Ok((cpu(a)?, cpu(b)?))
 }
 
 #[derive(Debug, Args)]
@@ -57,6 +79,9 @@ pub struct PeerArgs {
     /// Give up and report after this many seconds.
     #[arg(long)]
     pub deadline_s: f64,
+    /// Pin this process to one CPU.
+    #[arg(long)]
+    pub pin_cpu: Option<usize>,
 }
 
 pub fn run(args: BenchArgs) -> Result<()> {
@@ -76,6 +101,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
                     fd: args.fd,
                 },
                 deadline: Duration::from_secs_f64(args.deadline_s),
+                pin_cpu: args.pin_cpu,
             })
         }
     }
@@ -88,9 +114,14 @@ fn run_ipc(args: IpcArgs) -> Result<()> {
     if args.frames == 0 {
         bail!("--frames must be at least 1");
     }
+    if !(1..=100).contains(&args.rounds) {
+        bail!("--rounds must be between 1 and 100");
+    }
     let opts = IpcOptions {
         seconds_per_case: args.seconds_per_case,
         frames: args.frames,
+        rounds: args.rounds,
+        pin_cpus: args.pin_cpus,
     };
     let report = bench::run_ipc(&opts, &|case| eprintln!("bench ipc: {case}"))?;
     if args.json {

@@ -22,6 +22,8 @@ pub enum CameraError {
     Config(String),
     #[error("camera {path}: {reason}")]
     Device { path: PathBuf, reason: String },
+    #[error("camera frame: {0}")]
+    Frame(#[from] doorslam_ipc::FrameError),
 
     #[error("replay: {0}")]
     Replay(#[from] doorslam_hil::replay::ReplayError),
