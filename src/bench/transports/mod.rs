@@ -4,6 +4,7 @@
 //! Every transport stamps CLOCK_MONOTONIC right before its send call and the receiver
 //! stamps it again as soon as the whole pair is readable; the difference is the latency.
 
+mod dgram;
 mod eventfd;
 mod iceoryx2;
 mod unix_socket;
@@ -57,6 +58,9 @@ pub enum Transport {
     /// eventfd wake-up between the two processes, no payload: the floor for the above.
     #[value(name = "eventfd_floor")]
     EventfdFloor,
+    /// Unix datagram wake-up, no payload: the primitive iceoryx2's ipc events use.
+    #[value(name = "unix_dgram_floor")]
+    UnixDgramFloor,
     /// Zenoh peer sessions over tcp/127.0.0.1 with the payload in a Zenoh SHM buffer.
     #[value(name = "zenoh_shm")]
     ZenohShm,
@@ -66,10 +70,11 @@ pub enum Transport {
 }
 
 impl Transport {
-    pub const ALL: [Transport; 5] = [
+    pub const ALL: [Transport; 6] = [
         Transport::Iceoryx2Poll,
         Transport::Iceoryx2Event,
         Transport::EventfdFloor,
+        Transport::UnixDgramFloor,
         Transport::ZenohShm,
         Transport::UnixSocket,
     ];
@@ -80,14 +85,15 @@ impl Transport {
             Transport::Iceoryx2Poll => "iceoryx2_poll",
             Transport::Iceoryx2Event => "iceoryx2_event",
             Transport::EventfdFloor => "eventfd_floor",
+            Transport::UnixDgramFloor => "unix_dgram_floor",
             Transport::ZenohShm => "zenoh_shm",
             Transport::UnixSocket => "unix_socket",
         }
     }
 
-    /// Whether the transport carries the images at all (the floor carries none).
+    /// Whether the transport carries the images at all (the floors carry none).
     pub fn carries_payload(self) -> bool {
-        self != Transport::EventfdFloor
+        !matches!(self, Transport::EventfdFloor | Transport::UnixDgramFloor)
     }
 }
 
@@ -98,7 +104,7 @@ pub struct PeerEndpoint {
     pub name: String,
     /// Zenoh endpoint to connect to.
     pub connect: Option<String>,
-    /// eventfd inherited from the publisher.
+    /// Descriptor inherited from the publisher (eventfd, datagram socket).
     pub fd: Option<i32>,
 }
 
@@ -209,6 +215,7 @@ pub fn open_publisher(
         Transport::Iceoryx2Poll => iceoryx2::IceoryxPublisher::open(tag, width, height)?,
         Transport::Iceoryx2Event => iceoryx2::IceoryxPublisher::open(tag, width, height)?,
         Transport::EventfdFloor => eventfd::EventfdPublisher::open()?,
+        Transport::UnixDgramFloor => dgram::DgramPublisher::open()?,
         Transport::ZenohShm => zenoh_shm::ZenohPublisher::open(tag, width, height)?,
         Transport::UnixSocket => unix_socket::SocketPublisher::open(tag, width, height)?,
     })
@@ -220,6 +227,7 @@ pub fn open_receiver(transport: Transport, endpoint: &PeerEndpoint) -> Result<Bo
         Transport::Iceoryx2Poll => Box::new(iceoryx2::IceoryxReceiver::open(endpoint, false)?),
         Transport::Iceoryx2Event => Box::new(iceoryx2::IceoryxReceiver::open(endpoint, true)?),
         Transport::EventfdFloor => Box::new(eventfd::EventfdReceiver::open(endpoint)?),
+        Transport::UnixDgramFloor => Box::new(dgram::DgramReceiver::open(endpoint)?),
         Transport::ZenohShm => Box::new(zenoh_shm::ZenohReceiver::open(endpoint)?),
         Transport::UnixSocket => Box::new(unix_socket::SocketReceiver::open(endpoint)?),
     })
