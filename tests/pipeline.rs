@@ -111,32 +111,45 @@ fn wait_exit(child: &mut Child, limit: Duration) -> std::process::ExitStatus {
     }
 }
 
+/// `robot.toml` in `dir` for one robot: replay of `data` in real time, sim-keyframes every
+/// `every` frames, the back-end's state under `dir/state`, and `up` starting all three.
+fn write_robot(dir: &Path, robot: &str, data: &Path, every: u64) -> PathBuf {
+    let config = dir.join("robot.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[robot]\nid = \"{robot}\"\n[camera]\nsource = \"replay\"\n[camera.replay]\npath = \"{}\"\nrate = 1.0\n\
+             [backend]\nstate_dir = \"{}\"\noptimize_every = 5\n[sim_keyframes]\nevery = {every}\n\
+             [up]\nservices = [\"backend\", \"sim-keyframes\", \"camera\"]\n",
+            data.display(),
+            dir.join("state").display()
+        ),
+    )
+    .unwrap();
+    config
+}
+
+/// `doorslam up --config CONFIG EXTRA...` with info logs on a piped stderr.
+fn start_up(config: &Path, extra: &[&str]) -> Guard {
+    Guard(
+        Command::new(BIN)
+            .args(["up", "--config", config.to_str().unwrap()])
+            .args(extra)
+            .env("RUST_LOG", "info")
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    )
+}
+
 #[test]
 fn replay_to_sim_keyframes_to_backend_delivers_every_keyframe_in_order() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("seq");
     write_dataset(&data, 60);
     let robot = format!("pipe{}", std::process::id());
-    let config = tmp.path().join("robot.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[robot]\nid = \"{robot}\"\n[camera]\nsource = \"replay\"\n[camera.replay]\npath = \"{}\"\nrate = 1.0\n\
-             [backend]\nstate_dir = \"{}\"\noptimize_every = 5\n[sim_keyframes]\nevery = 3\n\
-             [up]\nservices = [\"backend\", \"sim-keyframes\", \"camera\"]\n",
-            data.display(),
-            tmp.path().join("state").display()
-        ),
-    )
-    .unwrap();
-    let mut up = Guard(
-        Command::new(BIN)
-            .args(["up", "--config", config.to_str().unwrap()])
-            .env("RUST_LOG", "info")
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap(),
-    );
+    let config = write_robot(tmp.path(), &robot, &data, 3);
+    let mut up = start_up(&config, &[]);
     let mut stderr = up.stderr.take().unwrap();
     let log = std::thread::spawn(move || {
         let mut s = String::new();
@@ -368,27 +381,8 @@ fn backend_crash_under_up_loses_no_keyframe() {
     let data = tmp.path().join("seq");
     write_dataset(&data, 400);
     let robot = format!("crash{}", std::process::id());
-    let config = tmp.path().join("robot.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[robot]\nid = \"{robot}\"\n[camera]\nsource = \"replay\"\n[camera.replay]\npath = \"{}\"\nrate = 1.0\n\
-             [backend]\nstate_dir = \"{}\"\noptimize_every = 5\n[sim_keyframes]\nevery = 2\n\
-             [up]\nservices = [\"backend\", \"sim-keyframes\", \"camera\"]\n",
-            data.display(),
-            tmp.path().join("state").display()
-        ),
-    )
-    .unwrap();
-    let mut up = Guard(
-        Command::new(BIN)
-            .args(["up", "--config", config.to_str().unwrap()])
-            .args(["--restart-delay-s", "0.5"])
-            .env("RUST_LOG", "info")
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap(),
-    );
+    let config = write_robot(tmp.path(), &robot, &data, 2);
+    let mut up = start_up(&config, &["--restart-delay-s", "0.5"]);
     let log = Arc::new(Mutex::new(String::new()));
     let reader = {
         let (log, stderr) = (log.clone(), up.stderr.take().unwrap());

@@ -7,9 +7,11 @@ use std::io;
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
 use std::time::Duration;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 
-use super::{Delivered, PeerEndpoint, Phase, Publish, Receive};
+use super::{
+    inherited_fd, nonblocking_sent, wait_readable, Delivered, PeerEndpoint, Phase, Publish, Receive,
+};
 use crate::bench::measure::{mono_ns, Mapping};
 
 pub struct DgramPublisher {
@@ -59,14 +61,7 @@ impl Publish for DgramPublisher {
         msg[8] = phase as u8;
         // SAFETY: sends 9 bytes from a live buffer on a descriptor we own.
         let n = unsafe { libc::send(self.ours.as_raw_fd(), msg.as_ptr().cast(), msg.len(), 0) };
-        if n == msg.len() as isize {
-            return Ok(true);
-        }
-        let err = io::Error::last_os_error();
-        if err.kind() == io::ErrorKind::WouldBlock {
-            return Ok(false);
-        }
-        Err(err).context("datagram send")
+        nonblocking_sent(n, msg.len(), "datagram send")
     }
 
     fn payload_mapping(&self) -> Option<Mapping> {
@@ -80,16 +75,8 @@ pub struct DgramReceiver {
 
 impl DgramReceiver {
     pub fn open(endpoint: &PeerEndpoint) -> Result<Self> {
-        let Some(raw) = endpoint.fd else {
-            bail!("datagram floor: no inherited descriptor given");
-        };
-        // SAFETY: F_GETFD only queries the descriptor table.
-        if raw < 0 || unsafe { libc::fcntl(raw, libc::F_GETFD) } < 0 {
-            bail!("datagram floor: descriptor {raw} was not inherited");
-        }
-        // SAFETY: the descriptor is open (checked above) and this process owns its copy.
         Ok(Self {
-            fd: unsafe { OwnedFd::from_raw_fd(raw) },
+            fd: inherited_fd(endpoint, "datagram floor")?,
         })
     }
 }
@@ -100,14 +87,7 @@ impl Receive for DgramReceiver {
         timeout: Duration,
         on_frame: &mut dyn FnMut(&Delivered<'_>),
     ) -> Result<()> {
-        let mut pfd = libc::pollfd {
-            fd: self.fd.as_raw_fd(),
-            events: libc::POLLIN,
-            revents: 0,
-        };
-        let ms = timeout.as_millis().clamp(1, i32::MAX as u128) as i32;
-        // SAFETY: one valid pollfd.
-        if unsafe { libc::poll(&mut pfd, 1, ms) } <= 0 {
+        if !wait_readable(self.fd.as_raw_fd(), timeout) {
             return Ok(());
         }
         let mut msg = [0u8; 9];

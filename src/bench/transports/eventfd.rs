@@ -6,9 +6,11 @@ use std::io;
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
 use std::time::Duration;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 
-use super::{Delivered, PeerEndpoint, Phase, Publish, Receive};
+use super::{
+    inherited_fd, nonblocking_sent, wait_readable, Delivered, PeerEndpoint, Phase, Publish, Receive,
+};
 use crate::bench::measure::{mono_ns, Mapping};
 
 const PHASE_BITS: u32 = 3;
@@ -46,15 +48,8 @@ impl Publish for EventfdPublisher {
                 std::mem::size_of::<u64>(),
             )
         };
-        if n == 8 {
-            return Ok(true);
-        }
-        let err = io::Error::last_os_error();
-        if err.kind() == io::ErrorKind::WouldBlock {
-            // The counter is saturated: the peer has not read for a while.
-            return Ok(false);
-        }
-        Err(err).context("eventfd write")
+        // No room: the counter is saturated, the peer has not read for a while.
+        nonblocking_sent(n, 8, "eventfd write")
     }
 
     fn payload_mapping(&self) -> Option<Mapping> {
@@ -70,17 +65,8 @@ pub struct EventfdReceiver {
 
 impl EventfdReceiver {
     pub fn open(endpoint: &PeerEndpoint) -> Result<Self> {
-        let Some(raw) = endpoint.fd else {
-            bail!("eventfd floor: no inherited descriptor given");
-        };
-        // SAFETY: F_GETFD only queries the descriptor table.
-        if raw < 0 || unsafe { libc::fcntl(raw, libc::F_GETFD) } < 0 {
-            bail!("eventfd floor: descriptor {raw} was not inherited");
-        }
-        // SAFETY: the descriptor is open (checked above) and this process owns its copy.
-        let fd = unsafe { OwnedFd::from_raw_fd(raw) };
         Ok(Self {
-            fd,
+            fd: inherited_fd(endpoint, "eventfd floor")?,
             last_phase: Phase::Warmup,
         })
     }
@@ -92,15 +78,7 @@ impl Receive for EventfdReceiver {
         timeout: Duration,
         on_frame: &mut dyn FnMut(&Delivered<'_>),
     ) -> Result<()> {
-        let mut pfd = libc::pollfd {
-            fd: self.fd.as_raw_fd(),
-            events: libc::POLLIN,
-            revents: 0,
-        };
-        let ms = timeout.as_millis().clamp(1, i32::MAX as u128) as i32;
-        // SAFETY: one valid pollfd.
-        let ready = unsafe { libc::poll(&mut pfd, 1, ms) };
-        if ready <= 0 {
+        if !wait_readable(self.fd.as_raw_fd(), timeout) {
             return Ok(());
         }
         let mut value = 0u64;

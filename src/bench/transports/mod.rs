@@ -171,6 +171,45 @@ pub struct Delivered<'a> {
     pub shm_claim: Option<bool>,
 }
 
+/// Sleeps in poll(2) until `fd` is readable or `timeout` passes; whether it is readable.
+pub(crate) fn wait_readable(fd: std::os::fd::RawFd, timeout: Duration) -> bool {
+    let mut pfd = libc::pollfd {
+        fd,
+        events: libc::POLLIN,
+        revents: 0,
+    };
+    let ms = timeout.as_millis().clamp(1, i32::MAX as u128) as i32;
+    // SAFETY: one valid pollfd, live for the call.
+    unsafe { libc::poll(&mut pfd, 1, ms) > 0 }
+}
+
+/// Outcome of a non-blocking write(2)/send(2) of `len` bytes that returned `n`: sent,
+/// `false` when there is no room (the peer has not read for a while), or the error.
+pub(crate) fn nonblocking_sent(n: isize, len: usize, what: &str) -> Result<bool> {
+    if n == len as isize {
+        return Ok(true);
+    }
+    let err = std::io::Error::last_os_error();
+    if n < 0 && err.kind() == std::io::ErrorKind::WouldBlock {
+        return Ok(false);
+    }
+    Err(anyhow::anyhow!("{what}: {n} of {len} bytes sent: {err}"))
+}
+
+/// The descriptor the publisher left open across exec for this peer (`--fd`), checked.
+pub(crate) fn inherited_fd(endpoint: &PeerEndpoint, what: &str) -> Result<std::os::fd::OwnedFd> {
+    use std::os::fd::FromRawFd;
+    let Some(raw) = endpoint.fd else {
+        anyhow::bail!("{what}: no inherited descriptor given");
+    };
+    // SAFETY: F_GETFD only queries the descriptor table.
+    if raw < 0 || unsafe { libc::fcntl(raw, libc::F_GETFD) } < 0 {
+        anyhow::bail!("{what}: descriptor {raw} was not inherited");
+    }
+    // SAFETY: the descriptor is open (checked above) and this process owns its copy.
+    Ok(unsafe { std::os::fd::OwnedFd::from_raw_fd(raw) })
+}
+
 /// Publisher half.
 pub trait Publish {
     /// Waits for the peer's connection, where the transport has one (Unix socket).

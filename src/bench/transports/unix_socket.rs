@@ -141,14 +141,7 @@ impl Receive for SocketReceiver {
         timeout: Duration,
         on_frame: &mut dyn FnMut(&Delivered<'_>),
     ) -> Result<()> {
-        let mut pfd = libc::pollfd {
-            fd: self.stream.as_raw_fd(),
-            events: libc::POLLIN,
-            revents: 0,
-        };
-        let ms = timeout.as_millis().clamp(1, i32::MAX as u128) as i32;
-        // SAFETY: one valid pollfd.
-        if unsafe { libc::poll(&mut pfd, 1, ms) } <= 0 {
+        if !super::wait_readable(self.stream.as_raw_fd(), timeout) {
             return Ok(());
         }
         let mut raw = [0u8; WIRE_HEADER_LEN];
