@@ -113,10 +113,18 @@ pub fn run(config: &SimKeyframesConfig) -> Result<SimKeyframesReport, SimKeyfram
         tracing::debug!(id, seq = h.seq, "sim-keyframes: keyframe published");
     }
     lifecycle.stopping();
+    let undelivered = keyframes.undelivered() + odometry.undelivered();
+    if undelivered > 0 {
+        tracing::warn!(
+            undelivered,
+            "sim-keyframes: samples reached fewer consumers than were connected"
+        );
+    }
     tracing::info!(
         frames = report.frames,
         dropped = report.dropped_frames,
         keyframes = report.keyframes,
+        undelivered,
         "sim-keyframes: stopped"
     );
     Ok(report)

@@ -6,16 +6,20 @@
 //!   oldest (counted by the receiver from the sequence numbers); the camera never blocks;
 //! - **everything else** (keyframes, odometry, descriptors, closures, estimates) is
 //!   reliable: a subscriber buffers up to [`RELIABLE_BUFFER`] samples and a publisher facing
-//!   a full buffer waits until the consumer catches up (`RetryUntilDelivered`): nothing
-//!   accepted is dropped; the wait shows up as latency upstream, never as loss.
+//!   a full buffer waits until the consumer catches up (`RetryUntilDelivered`); the wait
+//!   shows up as latency upstream, not as loss. One exception, iceoryx2's guard against
+//!   deadlocks: a sender only waits for a receiver that has connected its side of the
+//!   connection, which a receiver does when it is created and at every receive; a full
+//!   queue of a receiver that has not (a publisher that appeared while the consumer was
+//!   busy) drops the sample. Senders count samples that reached fewer receivers than were
+//!   connected ([`Sender::undelivered`]), and the back-end logs any gap in keyframe ids.
 //!
 //! Crash recovery: reliable publishers keep their last [`RELIABLE_HISTORY`] samples, and a
 //! subscriber that connects (a consumer restarted after a crash) is handed them first, in
-//! order; consumers skip what they already have (the back-end by keyframe id). Because a
-//! publisher stops sending once a dead consumer's buffer is full, every sample a crashed
-//! consumer never took is still in that history when its successor connects; only a sample
-//! in the dead consumer's hand can be lost, and only if the outage filled its whole buffer
-//! (a back-end journals each sample right after taking it).
+//! order; consumers skip what they already have (the back-end by keyframe id). The history
+//! is half the buffer, so a restarted consumer's queue still has room for new samples
+//! before its first receive. A consumer down for up to 128 samples misses nothing; beyond
+//! that the oldest are missing (a logged gap), and at 256 its producers wait.
 //!
 //! Waking up: a receiver sleeps in one `ppoll(2)` on the event listener's socket and takes
 //! the sample as soon as it wakes; notifications of samples already taken are consumed
@@ -42,9 +46,10 @@ use crate::service::{service_name, IpcError, Topic};
 /// Samples a reliable subscriber buffers before its publisher waits.
 pub const RELIABLE_BUFFER: usize = 256;
 
-/// Samples a reliable publisher keeps for consumers that (re)connect: as many as a
-/// subscriber buffers, so a consumer that died can never have missed more than this.
-pub const RELIABLE_HISTORY: usize = RELIABLE_BUFFER;
+/// Samples a reliable publisher keeps for consumers that (re)connect: the outage (in
+/// samples) a restarted consumer recovers from without a gap. Half the buffer, so the
+/// history cannot fill a new consumer's queue before it first receives.
+pub const RELIABLE_HISTORY: usize = RELIABLE_BUFFER / 2;
 
 fn service_error(service: &str, e: impl Debug) -> IpcError {
     let reason = format!("{e:?}");
@@ -107,6 +112,8 @@ pub struct Sender<T: Debug + ZeroCopySend + 'static> {
     publisher: Publisher<ipc::Service, T, ()>,
     notifier: Notifier<ipc::Service>,
     pubsub: PubSub<T>,
+    lossy: bool,
+    undelivered: std::cell::Cell<u64>,
 }
 
 impl<T: Debug + ZeroCopySend + 'static> Sender<T> {
@@ -131,6 +138,8 @@ impl<T: Debug + ZeroCopySend + 'static> Sender<T> {
             publisher,
             notifier,
             pubsub,
+            lossy: topic.lossy(),
+            undelivered: Default::default(),
         })
     }
 
@@ -155,7 +164,13 @@ impl<T: Debug + ZeroCopySend + 'static> Sender<T> {
         })?;
         // SAFETY: `fill` returned Ok, which by contract means it initialized the value.
         let sample = unsafe { sample.assume_init() };
-        sample.send().map_err(|e| service_error(&self.name, e))?;
+        let connected = self.receivers();
+        let delivered = sample.send().map_err(|e| service_error(&self.name, e))?;
+        if delivered < connected && !self.lossy {
+            // A receiver that has not connected its side yet had a full queue (see the
+            // module docs), or one left during the send: counted, the caller may log it.
+            self.undelivered.set(self.undelivered.get() + 1);
+        }
         self.notifier
             .notify()
             .map_err(|e| service_error(&self.name, e))?;
@@ -176,6 +191,12 @@ impl<T: Debug + ZeroCopySend + 'static> Sender<T> {
     /// Receivers currently connected.
     pub fn receivers(&self) -> usize {
         self.pubsub.dynamic_config().number_of_subscribers()
+    }
+
+    /// Reliable samples that reached fewer receivers than were connected when they were
+    /// sent (always 0 for frames, which are lossy by design).
+    pub fn undelivered(&self) -> u64 {
+        self.undelivered.get()
     }
 
     /// Hands the history to receivers that connected since the last send (a consumer
@@ -213,6 +234,11 @@ impl<T: Debug + ZeroCopySend + 'static> Receiver<T> {
         let listener = event
             .listener_builder()
             .create()
+            .map_err(|e| service_error(&name, e))?;
+        // Connect to the publishers already there now, not at the first receive, so they
+        // wait for this receiver (instead of dropping) from the start.
+        subscriber
+            .update_connections()
             .map_err(|e| service_error(&name, e))?;
         Ok(Self {
             name,
