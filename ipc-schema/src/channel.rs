@@ -164,9 +164,10 @@ impl<T: Debug + ZeroCopySend + 'static> Sender<T> {
         })?;
         // SAFETY: `fill` returned Ok, which by contract means it initialized the value.
         let sample = unsafe { sample.assume_init() };
-        let connected = self.receivers();
+        // Frames are lossy by design: only reliable topics count (and pay for the count).
+        let connected = (!self.lossy).then(|| self.receivers());
         let delivered = sample.send().map_err(|e| service_error(&self.name, e))?;
-        if delivered < connected && !self.lossy {
+        if connected.is_some_and(|connected| delivered < connected) {
             // A receiver that has not connected its side yet had a full queue (see the
             // module docs), or one left during the send: counted, the caller may log it.
             self.undelivered.set(self.undelivered.get() + 1);
