@@ -370,6 +370,72 @@ fn backend_killed_mid_run_resumes_with_its_graph() {
     );
 }
 
+/// A consumer that crashes and stays down must not stall its producer for good: once its
+/// queue is full the producer waits, finds the dead process's ports and removes them, and
+/// carries on (what it sends stays in its history for the next back-end).
+#[test]
+fn producer_carries_on_when_its_consumer_stays_dead() {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    use std::sync::Arc;
+    let tmp = tempfile::tempdir().unwrap();
+    let robot = format!("dead{}", std::process::id());
+    let config = tmp.path().join("robot.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[robot]\nid = \"{robot}\"\n[backend]\nstate_dir = \"{}\"\n",
+            tmp.path().join("state").display()
+        ),
+    )
+    .unwrap();
+    let journal = tmp
+        .path()
+        .join("state")
+        .join(&robot)
+        .join("backend.journal");
+    let log = tmp.path().join("backend.log");
+    let mut backend = start_backend(&config, &log);
+    wait_ready(&log);
+
+    let (sent, go) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
+    let producer = {
+        let (robot, sent, go) = (robot.clone(), sent.clone(), go.clone());
+        std::thread::spawn(move || {
+            let (node, _) = create_node("pipeline-test-producer").unwrap();
+            let kf = Sender::<Keyframe>::new(&node, &robot, Topic::Keyframes).unwrap();
+            while kf.receivers() == 0 {
+                std::thread::sleep(Duration::from_millis(10));
+            }
+            for id in 0..400 {
+                while id == 5 && go.load(Ordering::Acquire) == 0 {
+                    std::thread::sleep(Duration::from_millis(10));
+                }
+                kf.send_copy(&keyframe(id)).unwrap();
+                sent.store(id + 1, Ordering::Release);
+            }
+            kf.receivers()
+        })
+    };
+    wait_for(&journal, 5, 0);
+    backend.kill().unwrap(); // SIGKILL: its ports stay behind, its queue fills up
+    backend.wait().unwrap();
+    go.store(1, Ordering::Release);
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while !producer.is_finished() {
+        assert!(
+            Instant::now() < deadline,
+            "producer stalled at {} of 400 on a dead consumer",
+            sent.load(Ordering::Acquire)
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert_eq!(
+        producer.join().unwrap(),
+        0,
+        "the dead consumer's ports were removed"
+    );
+}
+
 /// The whole robot under `doorslam up`, with the back-end SIGKILLed in the middle of the
 /// run: `up` restarts it (as systemd would), it resumes from its journal, the keyframes
 /// sent while it was down reach it from the producer's history, and in the end the journal

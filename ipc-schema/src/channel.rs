@@ -19,7 +19,9 @@
 //! order; consumers skip what they already have (the back-end by keyframe id). The history
 //! is half the buffer, so a restarted consumer's queue still has room for new samples
 //! before its first receive. A consumer down for up to 128 samples misses nothing; beyond
-//! that the oldest are missing (a logged gap), and at 256 its producers wait.
+//! that the oldest are missing (a logged gap). A producer whose receiver's queue is full
+//! waits; if that receiver's process is dead, it removes the dead ports within a second
+//! and carries on (see [`remove_dead_receivers_while_blocked`]).
 //!
 //! Waking up: a receiver sleeps in one `ppoll(2)` on the event listener's socket and takes
 //! the sample as soon as it wakes; notifications of samples already taken are consumed
@@ -106,6 +108,32 @@ pub(crate) fn open<T: Debug + ZeroCopySend + 'static>(
     Ok((name, pubsub, event))
 }
 
+/// Backpressure handler of reliable senders: waiting on a full receiver is normal while a
+/// live consumer catches up, but a consumer that crashed never will, and until its
+/// successor starts (which removes it) the sender would wait forever. So once per second of
+/// waiting, the ports of dead processes are removed; the wait on a dead receiver then ends
+/// (its samples stay in the history for its successor) and the producer carries on.
+fn remove_dead_receivers_while_blocked(
+) -> impl Fn(&iceoryx2::port::BackpressureInfo) -> iceoryx2::port::BackpressureAction + Send {
+    let last_check_s = std::sync::atomic::AtomicU64::new(0);
+    move |info| {
+        use std::sync::atomic::Ordering::Relaxed;
+        let waited_s = info.elapsed_time.as_secs();
+        if info.retries == 0 {
+            last_check_s.store(0, Relaxed);
+        } else if waited_s > last_check_s.load(Relaxed) {
+            last_check_s.store(waited_s, Relaxed);
+            let _ = Node::<ipc::Service>::list(iceoryx2::config::Config::global_config(), |n| {
+                if let NodeState::Dead(dead) = n {
+                    let _ = dead.blocking_remove_stale_resources(Duration::ZERO);
+                }
+                CallbackProgression::Continue
+            });
+        }
+        iceoryx2::port::BackpressureAction::Retry
+    }
+}
+
 /// The sending end of a channel.
 pub struct Sender<T: Debug + ZeroCopySend + 'static> {
     name: String,
@@ -124,11 +152,13 @@ impl<T: Debug + ZeroCopySend + 'static> Sender<T> {
         } else {
             BackpressureStrategy::RetryUntilDelivered
         };
-        let publisher = pubsub
-            .publisher_builder()
-            .backpressure_strategy(strategy)
-            .create()
-            .map_err(|e| service_error(&name, e))?;
+        let builder = pubsub.publisher_builder().backpressure_strategy(strategy);
+        let builder = if topic.lossy() {
+            builder
+        } else {
+            builder.set_backpressure_handler(remove_dead_receivers_while_blocked())
+        };
+        let publisher = builder.create().map_err(|e| service_error(&name, e))?;
         let notifier = event
             .notifier_builder()
             .create()
