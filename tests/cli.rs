@@ -344,3 +344,42 @@ fn sim_graph_and_pcm_sweep_reject_every_uniform_outlier() {
     ]));
     assert!(err.contains("1.5") && err.contains("probability"), "{err}");
 }
+
+/// `doorslam up` restarts a failing service like the systemd units do, at most 5 starts in
+/// 30 s, then stops the robot with an error that names the service; with `--restart no`
+/// the first failure stops it. The failing service is a camera pointed at a device that
+/// does not exist (it exits with status 1 at once).
+#[test]
+fn up_restarts_a_failing_service_up_to_the_start_limit() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("robot.toml");
+    std::fs::write(
+        &cfg,
+        format!(
+            "[robot]\nid = \"uplimit{}\"\n[camera]\nleft = \"/dev/video97\"\n[up]\nservices = [\"camera\"]\n",
+            std::process::id()
+        ),
+    )
+    .unwrap();
+    let cfg = cfg.to_str().unwrap();
+    let started = std::time::Instant::now();
+    let out = doorslam(&["up", "--config", cfg, "--restart-delay-s", "0.05"]);
+    let err = stderr(&out);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert_eq!(err.matches("[up] started camera").count(), 5, "{err}");
+    assert_eq!(err.matches("restarting in").count(), 4, "{err}");
+    assert!(
+        err.contains("service camera failed 5 times within 30s"),
+        "{err}"
+    );
+    assert!(started.elapsed() < std::time::Duration::from_secs(20));
+
+    let out = doorslam(&["up", "--config", cfg, "--restart", "no"]);
+    let err = stderr(&out);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert_eq!(err.matches("[up] started camera").count(), 1, "{err}");
+    assert!(
+        err.contains("camera failed (exit status: 1): stopping the robot"),
+        "{err}"
+    );
+}
