@@ -142,6 +142,8 @@ pub struct Sender<T: Debug + ZeroCopySend + 'static> {
     pubsub: PubSub<T>,
     lossy: bool,
     undelivered: std::cell::Cell<u64>,
+    /// Receivers as of the last [`Self::catch_up_receivers`].
+    known_receivers: std::cell::RefCell<Vec<iceoryx2::identifiers::UniqueSubscriberId>>,
 }
 
 impl<T: Debug + ZeroCopySend + 'static> Sender<T> {
@@ -170,6 +172,7 @@ impl<T: Debug + ZeroCopySend + 'static> Sender<T> {
             pubsub,
             lossy: topic.lossy(),
             undelivered: Default::default(),
+            known_receivers: Default::default(),
         })
     }
 
@@ -230,20 +233,30 @@ impl<T: Debug + ZeroCopySend + 'static> Sender<T> {
         self.undelivered.get()
     }
 
-    /// Hands the history to receivers that connected since the last send (a consumer
+    /// Hands the history to receivers that connected since the last call (a consumer
     /// restarted after a crash) and wakes them. Sending does this by itself; a producer
     /// with nothing to send calls this from its idle loop (every ~100 ms), or a restarted
-    /// consumer would wait for the next sample to get what it missed. Costs a
-    /// shared-memory read plus one wake-up per connected receiver.
+    /// consumer would wait for the next sample to get what it missed. Costs a read of the
+    /// receiver list in shared memory; connections are updated and receivers woken only
+    /// when that list changed.
     pub fn catch_up_receivers(&self) -> Result<(), IpcError> {
+        let mut now = Vec::new();
+        self.pubsub.dynamic_config().list_subscribers(|s| {
+            now.push(s.subscriber_id);
+            CallbackProgression::Continue
+        });
+        if now == *self.known_receivers.borrow() {
+            return Ok(());
+        }
         self.publisher
             .update_connections()
             .map_err(|e| service_error(&self.name, e))?;
-        if self.receivers() > 0 {
+        if !now.is_empty() {
             self.notifier
                 .notify()
                 .map_err(|e| service_error(&self.name, e))?;
         }
+        *self.known_receivers.borrow_mut() = now;
         Ok(())
     }
 }
