@@ -162,6 +162,7 @@ pub fn run(config: &CameraConfig, robot: &str, robot_index: u32) -> Result<(), C
     tracing::info!(devices = ?paths, side_by_side, ?formats, "camera: capturing");
     let mut seq = 0u64;
     let mut unpaired = 0u64;
+    let mut last_warning: Option<std::time::Instant> = None;
     let tolerance_ns = Duration::from_secs_f64(0.5 / config.fps as f64).as_nanos() as u64;
     let (first, rest) = streams.split_at_mut(1);
     let (left_stream, mut right_stream) = (&mut first[0], rest.first_mut());
@@ -209,13 +210,17 @@ pub fn run(config: &CameraConfig, robot: &str, robot_index: u32) -> Result<(), C
             unpaired += 1;
         }
         if pairing(stamp_l, stamp_r, tolerance_ns) != Pairing::Pair {
-            tracing::warn!(
-                left_ns = stamp_l,
-                right_ns = stamp_r,
-                unpaired,
-                "camera: left and right captures stay more than half a frame apart; are both cameras running at {} fps?",
-                config.fps
-            );
+            // Once a second at most: cameras out of sync stay so for every frame.
+            if last_warning.is_none_or(|t| t.elapsed() >= Duration::from_secs(1)) {
+                last_warning = Some(std::time::Instant::now());
+                tracing::warn!(
+                    left_ns = stamp_l,
+                    right_ns = stamp_r,
+                    unpaired,
+                    "camera: left and right captures stay more than half a frame apart; are both cameras running at {} fps?",
+                    config.fps
+                );
+            }
             continue;
         }
         sender.send_with(|slot| {
