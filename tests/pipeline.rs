@@ -113,7 +113,8 @@ fn wait_exit(child: &mut Child, limit: Duration) -> std::process::ExitStatus {
 
 /// `robot.toml` in `dir` for one robot: replay of `data` in real time, sim-keyframes every
 /// `every` frames, the back-end's state under `dir/state`, and `up` starting all three.
-fn write_robot(dir: &Path, robot: &str, data: &Path, every: u64) -> PathBuf {
+/// Returns it and the path of the back-end's journal.
+fn write_robot(dir: &Path, robot: &str, data: &Path, every: u64) -> (PathBuf, PathBuf) {
     let config = dir.join("robot.toml");
     std::fs::write(
         &config,
@@ -126,7 +127,10 @@ fn write_robot(dir: &Path, robot: &str, data: &Path, every: u64) -> PathBuf {
         ),
     )
     .unwrap();
-    config
+    (
+        config,
+        dir.join("state").join(robot).join("backend.journal"),
+    )
 }
 
 /// `doorslam up --config CONFIG EXTRA...` with info logs on a piped stderr.
@@ -148,7 +152,7 @@ fn replay_to_sim_keyframes_to_backend_delivers_every_keyframe_in_order() {
     let data = tmp.path().join("seq");
     write_dataset(&data, 60);
     let robot = format!("pipe{}", std::process::id());
-    let config = write_robot(tmp.path(), &robot, &data, 3);
+    let (config, journal) = write_robot(tmp.path(), &robot, &data, 3);
     let mut up = start_up(&config, &[]);
     let mut stderr = up.stderr.take().unwrap();
     let log = std::thread::spawn(move || {
@@ -156,11 +160,6 @@ fn replay_to_sim_keyframes_to_backend_delivers_every_keyframe_in_order() {
         let _ = stderr.read_to_string(&mut s);
         s
     });
-    let journal = tmp
-        .path()
-        .join("state")
-        .join(&robot)
-        .join("backend.journal");
     // 60 frames at 100 Hz: wait for the journal to fill and settle.
     let deadline = Instant::now() + Duration::from_secs(30);
     let mut last = (0, Instant::now());
@@ -254,6 +253,22 @@ fn odometry(from: u64) -> OdometryEdge {
     }
 }
 
+/// `robot.toml` in `dir` for a back-end alone (state under `dir/state`); returns it and
+/// the path of the journal the back-end will keep.
+fn write_backend_robot(dir: &Path, robot: &str) -> (PathBuf, PathBuf) {
+    let config = dir.join("robot.toml");
+    let state = dir.join("state");
+    std::fs::write(
+        &config,
+        format!(
+            "[robot]\nid = \"{robot}\"\n[backend]\nstate_dir = \"{}\"\noptimize_every = 5\n",
+            state.display()
+        ),
+    )
+    .unwrap();
+    (config, state.join(robot).join("backend.journal"))
+}
+
 fn start_backend(config: &Path, log: &Path) -> Guard {
     Guard(
         Command::new(BIN)
@@ -291,17 +306,7 @@ fn wait_for(journal: &Path, keyframes: usize, edges: usize) {
 fn backend_killed_mid_run_resumes_with_its_graph() {
     let tmp = tempfile::tempdir().unwrap();
     let robot = format!("kill{}", std::process::id());
-    let config = tmp.path().join("robot.toml");
-    let state = tmp.path().join("state");
-    std::fs::write(
-        &config,
-        format!(
-            "[robot]\nid = \"{robot}\"\n[backend]\nstate_dir = \"{}\"\noptimize_every = 5\n",
-            state.display()
-        ),
-    )
-    .unwrap();
-    let journal: PathBuf = state.join(&robot).join("backend.journal");
+    let (config, journal) = write_backend_robot(tmp.path(), &robot);
 
     let (node, _) = create_node("pipeline-test-frontend").unwrap();
     let kf = Sender::<Keyframe>::new(&node, &robot, Topic::Keyframes).unwrap();
@@ -379,20 +384,7 @@ fn producer_carries_on_when_its_consumer_stays_dead() {
     use std::sync::Arc;
     let tmp = tempfile::tempdir().unwrap();
     let robot = format!("dead{}", std::process::id());
-    let config = tmp.path().join("robot.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[robot]\nid = \"{robot}\"\n[backend]\nstate_dir = \"{}\"\n",
-            tmp.path().join("state").display()
-        ),
-    )
-    .unwrap();
-    let journal = tmp
-        .path()
-        .join("state")
-        .join(&robot)
-        .join("backend.journal");
+    let (config, journal) = write_backend_robot(tmp.path(), &robot);
     let log = tmp.path().join("backend.log");
     let mut backend = start_backend(&config, &log);
     wait_ready(&log);
@@ -447,7 +439,7 @@ fn backend_crash_under_up_loses_no_keyframe() {
     let data = tmp.path().join("seq");
     write_dataset(&data, 400);
     let robot = format!("crash{}", std::process::id());
-    let config = write_robot(tmp.path(), &robot, &data, 2);
+    let (config, journal) = write_robot(tmp.path(), &robot, &data, 2);
     let mut up = start_up(&config, &["--restart-delay-s", "0.5"]);
     let log = Arc::new(Mutex::new(String::new()));
     let reader = {
@@ -465,11 +457,6 @@ fn backend_crash_under_up_loses_no_keyframe() {
         })
     };
     let text = || log.lock().unwrap().clone();
-    let journal = tmp
-        .path()
-        .join("state")
-        .join(&robot)
-        .join("backend.journal");
 
     let deadline = Instant::now() + Duration::from_secs(30);
     while keyframe_ids(&journal).0.len() < 30 {

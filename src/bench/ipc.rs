@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 
 use super::child::PeerProcess;
-use super::measure::{cpu_ns, mono_ns, pin_to_cpu, test_image};
+use super::measure::{cpu_ns, median, mono_ns, pin_to_cpu, test_image};
 use super::peer::PeerReport;
 use super::report::{check_targets, loadavg, IpcReport, Machine, ResultRow, Settings};
 use super::transports::{open_publisher, PeerEndpoint, Phase, Publish, Transport};
@@ -118,13 +118,6 @@ pub fn run(opts: &IpcOptions, progress: &dyn Fn(&str)) -> Result<IpcReport> {
         results,
         targets,
     })
-}
-
-/// Median of the values present (the lower middle one for an even count).
-fn median(values: impl IntoIterator<Item = Option<f64>>) -> Option<f64> {
-    let mut v: Vec<f64> = values.into_iter().flatten().collect();
-    v.sort_by(f64::total_cmp);
-    (!v.is_empty()).then(|| v[(v.len() - 1) / 2])
 }
 
 /// One row from a case's rounds: every figure is the median over the rounds that did not

@@ -155,13 +155,10 @@ pub fn check_targets(rows: &[ResultRow], resolutions: &[String]) -> Vec<TargetCh
         // burst of load in one round cannot pass for a property of one transport.
         let ratio = |floor: Option<&ResultRow>, f: fn(&ResultRow) -> &Vec<Option<f64>>| {
             let (e, fl) = (f(event?), f(floor?));
-            let ratios = e.iter().zip(fl).map(|(e, fl)| match (e, fl) {
+            super::measure::median(e.iter().zip(fl).map(|(e, fl)| match (e, fl) {
                 (Some(e), Some(fl)) if *fl > 0.0 => Some(e / fl),
                 _ => None,
-            });
-            let mut v: Vec<f64> = ratios.flatten().collect();
-            v.sort_by(f64::total_cmp);
-            (!v.is_empty()).then(|| v[(v.len() - 1) / 2])
+            }))
         };
         // "within 2x" includes 2x itself: compare against a hair above it.
         push(
