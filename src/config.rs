@@ -3,6 +3,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
+use doorslam_backend::service::BackendSection;
 use doorslam_camera::CameraConfig;
 use serde::Deserialize;
 
@@ -20,34 +21,6 @@ pub struct RobotConfig {
     pub sim_keyframes: SimKeyframesSection,
     #[serde(default)]
     pub up: UpSection,
-}
-
-/// `[backend]`.
-#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct BackendSection {
-    /// Where the back-end keeps its journal (`<state_dir>/<robot id>/backend.journal`).
-    #[serde(default = "default_state_dir")]
-    pub state_dir: PathBuf,
-    /// Re-optimize after this many new keyframes.
-    #[serde(default = "default_optimize_every")]
-    pub optimize_every: usize,
-}
-
-fn default_state_dir() -> PathBuf {
-    PathBuf::from("/var/lib/doorslam")
-}
-fn default_optimize_every() -> usize {
-    10
-}
-
-impl Default for BackendSection {
-    fn default() -> Self {
-        Self {
-            state_dir: default_state_dir(),
-            optimize_every: default_optimize_every(),
-        }
-    }
 }
 
 /// `[sim_keyframes]`: the simulation stand-in for the front-end (never visual odometry).
@@ -156,9 +129,7 @@ impl RobotConfig {
             );
         }
         self.camera.validate()?;
-        if self.backend.optimize_every == 0 {
-            bail!("backend.optimize_every must be >= 1");
-        }
+        self.backend.validate()?;
         if self.sim_keyframes.every == 0 {
             bail!("sim_keyframes.every must be >= 1");
         }

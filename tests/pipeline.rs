@@ -33,10 +33,8 @@ fn write_dataset(dir: &Path, frames: usize) {
             })
             .collect();
         let name = format!("{k:06}.png");
-        doorslam_hil::replay::write_gray_png(&dir.join("image_0").join(&name), 64, 48, &px)
-            .unwrap();
-        doorslam_hil::replay::write_gray_png(&dir.join("image_1").join(&name), 64, 48, &px)
-            .unwrap();
+        doorslam_dataset::write_gray_png(&dir.join("image_0").join(&name), 64, 48, &px).unwrap();
+        doorslam_dataset::write_gray_png(&dir.join("image_1").join(&name), 64, 48, &px).unwrap();
         times.push_str(&format!("{:.6}\n", k as f64 * 0.01));
         poses.push_str(&format!("1 0 0 {} 0 1 0 0 0 0 1 0\n", 0.1 * k as f64));
     }
@@ -249,7 +247,9 @@ fn odometry(from: u64) -> OdometryEdge {
         to: from + 1,
         stamp_ns: 0,
         relative: [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
-        information: doorslam_ipc::upper_from_diagonal([1e4, 1e4, 1e4, 1e2, 1e2, 1e2]),
+        information: doorslam_geometry::information::upper_from_diagonal([
+            1e4, 1e4, 1e4, 1e2, 1e2, 1e2,
+        ]),
     }
 }
 

@@ -4,7 +4,7 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
-use doorslam_hil::replay::Dataset;
+use doorslam_dataset::Dataset;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 
 fn doorslam(args: &[&str]) -> Output {

@@ -35,7 +35,6 @@ mod image;
 mod noise;
 pub mod posegraph_sim;
 mod render;
-pub mod replay;
 mod rng;
 pub mod sim_keyframes;
 mod texture;

@@ -6,10 +6,11 @@
 
 use std::time::Duration;
 
+use doorslam_geometry::information::upper_from_diagonal;
+use doorslam_geometry::{pose_from_array, pose_to_array, PoseError};
 use doorslam_ipc::{
-    create_node, pose_from_array, pose_to_array, upper_from_diagonal, Feature, Keyframe,
-    KeyframeSource, Lifecycle, OdometryEdge, Receiver, Sender, StereoFrame, Topic, FRAME_HAS_TRUTH,
-    MAX_KEYFRAME_FEATURES,
+    create_node, Feature, Keyframe, KeyframeSource, Lifecycle, OdometryEdge, Receiver, Sender,
+    StereoFrame, Topic, FRAME_HAS_TRUTH, MAX_KEYFRAME_FEATURES,
 };
 use nalgebra::Isometry3;
 
@@ -20,6 +21,12 @@ pub enum SimKeyframesError {
     Ipc(#[from] doorslam_ipc::IpcError),
     #[error("frame {seq} has no ground-truth pose: sim-keyframes only works on replayed datasets with truth or simulation; on a real camera run the front-end")]
     NoTruth { seq: u64 },
+    #[error("frame {seq}: ground-truth pose in the frame header: {source}")]
+    BadTruth {
+        seq: u64,
+        #[source]
+        source: PoseError,
+    },
     #[error("sim_keyframes.every must be >= 1")]
     Every,
 }
@@ -77,7 +84,8 @@ pub fn run(config: &SimKeyframesConfig) -> Result<SimKeyframesReport, SimKeyfram
         if h.flags & FRAME_HAS_TRUTH == 0 {
             return Err(SimKeyframesError::NoTruth { seq: h.seq });
         }
-        let pose = pose_from_array(&h.truth_pose);
+        let pose = pose_from_array(&h.truth_pose)
+            .map_err(|source| SimKeyframesError::BadTruth { seq: h.seq, source })?;
         // Ids follow the frame sequence, so a restarted sim-keyframes continues the
         // numbering instead of reusing ids the back-end already has.
         let id = h.seq / config.every;

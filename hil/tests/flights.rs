@@ -221,7 +221,7 @@ fn small_team_writes_a_replayable_folder() {
     let _ = std::fs::remove_dir_all(&dir);
     write_team(&dir, &world, &team, &|_, _| {}).unwrap();
     for robot in ["a", "b"] {
-        let d = doorslam_hil::replay::Dataset::open(&dir.join(robot)).unwrap();
+        let d = doorslam_dataset::Dataset::open(&dir.join(robot)).unwrap();
         assert_eq!(d.len(), 4);
         assert_eq!(d.load(3).unwrap().width, 94);
         assert!(d.truth.is_some());

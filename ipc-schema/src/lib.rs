@@ -12,17 +12,19 @@
 //! - [`channel`]: typed senders/receivers with event notification, the back-pressure
 //!   policy (frames lossy, everything else reliable) and crash recovery (history).
 //!
+//! Poses and information matrices travel as plain arrays (`[x y z qx qy qz qw]`, the
+//! 21-value upper triangle); their conversions and the rules they must satisfy live in
+//! `doorslam-geometry` (`pose`, `information`), so this crate has no math dependency.
+//!
 //! Inter-robot wire messages (Zenoh) will live in `wire/` beside these.
 
 pub mod channel;
 pub mod lifecycle;
-pub mod pose;
 pub mod service;
 pub mod shm;
 
 pub use channel::{Receiver, Sender, RELIABLE_BUFFER, RELIABLE_HISTORY};
 pub use lifecycle::{sd_notify, Lifecycle};
-pub use pose::{matrix_from_upper, pose_from_array, pose_to_array, upper_from_diagonal};
 pub use service::{
     cleanup_dead_nodes, create_node, open_frames, service_name, FramePublisher, FrameSubscriber,
     IpcError, Topic,

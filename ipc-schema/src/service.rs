@@ -37,7 +37,7 @@ pub enum Topic {
 }
 
 impl Topic {
-    fn as_str(self) -> &'static str {
+    pub fn as_str(self) -> &'static str {
         match self {
             Topic::Frames => "frames",
             Topic::Keyframes => "keyframes",

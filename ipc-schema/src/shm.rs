@@ -265,6 +265,18 @@ pub enum KeyframeSource {
     SimulatedTruth = 1,
 }
 
+impl TryFrom<u32> for KeyframeSource {
+    /// The value received, which names no source this schema knows.
+    type Error = u32;
+    fn try_from(v: u32) -> Result<Self, u32> {
+        match v {
+            0 => Ok(Self::VisualOdometry),
+            1 => Ok(Self::SimulatedTruth),
+            other => Err(other),
+        }
+    }
+}
+
 /// One feature of a keyframe: pixel, 3-D point in the camera frame, ORB descriptor.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]

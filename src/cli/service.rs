@@ -52,12 +52,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             bail!("service place-recognition is not built yet: it arrives with the place-recognition issue (next wave)")
         }
         ServiceName::Backend => {
-            let c = doorslam_backend::service::BackendConfig {
-                robot: config.robot.id.clone(),
-                robot_index: config.robot.index,
-                state_dir: config.backend.state_dir.join(&config.robot.id),
-                optimize_every: config.backend.optimize_every,
-            };
+            let c = config
+                .backend
+                .for_robot(&config.robot.id, config.robot.index);
             doorslam_backend::service::run(&c)?;
             Ok(())
         }

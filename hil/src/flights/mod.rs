@@ -4,7 +4,7 @@
 //!
 //! Every drone records at the same instants `k / rate_hz`. Poses are camera-to-world of
 //! the LEFT camera (camera x right, y down, z forward; world z up), as the renderer and
-//! [`crate::replay::Dataset::with_truth`] use them. The camera looks along the flight
+//! `doorslam_dataset::Dataset::with_truth` use them. The camera looks along the flight
 //! direction, pitched down by `pitch_down_deg` so street, facades and a strip of sky
 //! are all in view.
 //!

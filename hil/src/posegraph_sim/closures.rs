@@ -2,7 +2,7 @@
 
 use std::collections::BTreeSet;
 
-use doorslam_backend::lie::{LieGroup, Tangent};
+use doorslam_geometry::{LieGroup, Tangent};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
 use super::random::{Rng, Stream};

@@ -70,6 +70,8 @@ pub enum SimError {
     /// are unused pose pairs).
     #[error("cannot simulate: {0}")]
     Infeasible(String),
+    #[error("cannot simulate: {0}")]
+    Key(#[from] doorslam_geometry::KeyError),
     #[error("cannot write {path}: {source}")]
     Io {
         path: PathBuf,

@@ -4,7 +4,8 @@ use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
-use doorslam_backend::{key, write_g2o, Graph};
+use doorslam_backend::{write_g2o, Graph};
+use doorslam_geometry::key;
 use nalgebra::Isometry3;
 
 use super::{SimError, SimulatedTeam};

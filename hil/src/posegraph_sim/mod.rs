@@ -7,7 +7,7 @@
 //! noisy measurements, all with the same Gaussian model (paper: σ_R = 0.01 rad,
 //! σ_t = 0.1 m): a measurement of the relative pose `T` is `z = T · Exp(ξ)` with
 //! `ξ ~ N(0, Σ)`, `Σ = diag(σr², σr², σr², σt², σt², σt²)` in the rotation-first tangent
-//! of [`doorslam_backend::lie`], and its information matrix is exactly `Σ⁻¹`, so the
+//! of [`doorslam_geometry::lie`], and its information matrix is exactly `Σ⁻¹`, so the
 //! whitened residual of a measurement at the true poses is χ²₆-distributed.
 //!
 //! - odometry `i → i+1` of every robot;
@@ -35,7 +35,8 @@ mod dataset;
 mod random;
 mod trajectory;
 
-use doorslam_backend::{key, BetweenFactor, PoseGraph};
+use doorslam_backend::{BetweenFactor, PoseGraph};
+use doorslam_geometry::key;
 use nalgebra::Isometry3;
 
 pub use closures::measurement_chi2;
@@ -48,7 +49,7 @@ use random::{Rng, Stream};
 /// A loop closure of the simulated graph and what it really is.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct LabelledClosure {
-    /// Multi-robot keys (`doorslam_backend::key::symbol`); for inter-robot closures the
+    /// Multi-robot keys (`doorslam_geometry::key::symbol`); for inter-robot closures the
     /// lower robot comes first.
     pub key_a: u64,
     pub key_b: u64,
@@ -174,7 +175,7 @@ pub fn simulate(config: &SimConfig) -> Result<SimulatedTeam, SimError> {
     let mut odometry = Vec::new();
     for (robot, poses) in truth.iter().enumerate() {
         let mut estimate = poses[0];
-        graph.add_pose(key::symbol(robot as u8, 0), estimate);
+        graph.add_pose(key::symbol(robot as u8, 0)?, estimate);
         for (index, pair) in poses.windows(2).enumerate() {
             let z = noise.perturb(
                 &(pair[0].inverse() * pair[1]),
@@ -182,7 +183,7 @@ pub fn simulate(config: &SimConfig) -> Result<SimulatedTeam, SimError> {
                 config.sigma_t,
             );
             estimate *= z;
-            graph.add_pose(key::symbol(robot as u8, index as u64 + 1), estimate);
+            graph.add_pose(key::symbol(robot as u8, index as u64 + 1)?, estimate);
             odometry.push((node((robot, index)), node((robot, index + 1)), z));
         }
     }
@@ -195,8 +196,8 @@ pub fn simulate(config: &SimConfig) -> Result<SimulatedTeam, SimError> {
     for c in sim.closures {
         graph.add_edge(node(c.a), node(c.b), c.measured, information);
         labelled.push(LabelledClosure {
-            key_a: key::symbol(c.a.0 as u8, c.a.1 as u64),
-            key_b: key::symbol(c.b.0 as u8, c.b.1 as u64),
+            key_a: key::symbol(c.a.0 as u8, c.a.1 as u64)?,
+            key_b: key::symbol(c.b.0 as u8, c.b.1 as u64)?,
             inlier: c.inlier,
             group: c.group,
         });

@@ -6,7 +6,7 @@
 //! its own stream, so changing e.g. the outlier fraction leaves the trajectories and the
 //! inlier closures of a seed untouched.
 
-use doorslam_backend::lie::{LieGroup, Tangent};
+use doorslam_geometry::{LieGroup, Tangent};
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
 
 /// Independent streams of one seed.

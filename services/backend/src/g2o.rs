@@ -1,17 +1,17 @@
 //! g2o files: `VERTEX_SE2`, `EDGE_SE2`, `VERTEX_SE3:QUAT`, `EDGE_SE3:QUAT` (and `FIX`).
 //!
 //! g2o stores information matrices in translation-first order; the solver uses
-//! rotation-first (see [`crate::lie`]): the blocks are permuted here and only here.
+//! rotation-first (see [`doorslam_geometry::lie`]): the blocks are permuted here and only here.
 //! Files without `VERTEX` lines (or with edges to poses that have none) get initial
 //! poses by chaining edges outward from the first pose (a spanning tree, file order).
 
 use std::io::Write;
 use std::path::Path;
 
-use nalgebra::{Isometry2, Isometry3, Quaternion, Translation3, UnitQuaternion};
+use nalgebra::{Isometry2, Isometry3, Translation3, UnitQuaternion};
 
 use crate::graph::PoseGraph;
-use crate::lie::{LieGroup, TangentMatrix};
+use doorslam_geometry::{LieGroup, TangentMatrix, SO3};
 
 /// Errors of reading or writing a graph file; parse errors name the file and line.
 #[derive(Debug, thiserror::Error)]
@@ -106,14 +106,10 @@ impl Ctx<'_> {
         z: f64,
         w: f64,
     ) -> Result<UnitQuaternion<f64>, GraphError> {
-        let q = Quaternion::new(w, x, y, z);
-        if (q.norm() - 1.0).abs() > 1e-2 {
-            return Err(self.err(format!(
-                "{tag}: quaternion ({x}, {y}, {z}, {w}) has norm {:.4}, expected 1",
-                q.norm()
-            )));
-        }
-        Ok(UnitQuaternion::from_quaternion(q))
+        // The same rule as every other input of a pose (doorslam_geometry::SO3).
+        SO3::from_quaternion_checked(x, y, z, w)
+            .map(|r| r.quaternion())
+            .map_err(|e| self.err(format!("{tag}: quaternion ({x}, {y}, {z}, {w}): {e}")))
     }
     /// Symmetric matrix from the row-major upper triangle, permuted by `order`
     /// (file index -> solver index), checked positive definite.
@@ -316,7 +312,7 @@ fn assemble<G: LieGroup>(
             file: file.into(),
             msg: format!(
                 "pose {} has no VERTEX line and no chain of edges to the first pose",
-                crate::graph::key::label(g.keys()[p])
+                doorslam_geometry::key::label(g.keys()[p])
             ),
         });
     }

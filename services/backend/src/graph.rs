@@ -2,35 +2,7 @@
 
 use std::collections::BTreeMap;
 
-use crate::lie::{LieGroup, TangentMatrix};
-
-/// GTSAM's multi-robot key convention: `key = (robot_char << 56) | index`.
-pub mod key {
-    /// The key of pose `index` of robot `robot` (0 = 'a', 1 = 'b', ...).
-    pub fn symbol(robot: u8, index: u64) -> u64 {
-        ((b'a' + robot) as u64) << 56 | (index & ((1 << 56) - 1))
-    }
-    /// The robot (0 = 'a') of a multi-robot key, or `None` for a plain single-robot index.
-    pub fn robot(key: u64) -> Option<u8> {
-        let c = (key >> 56) as u8;
-        c.is_ascii_lowercase().then(|| c - b'a')
-    }
-    /// The per-robot index of a key.
-    pub fn index(key: u64) -> u64 {
-        if robot(key).is_some() {
-            key & ((1 << 56) - 1)
-        } else {
-            key
-        }
-    }
-    /// `a12`-style label for messages, or the plain number.
-    pub fn label(key: u64) -> String {
-        match robot(key) {
-            Some(r) => format!("{}{}", (b'a' + r) as char, index(key)),
-            None => key.to_string(),
-        }
-    }
-}
+use doorslam_geometry::{key, LieGroup, TangentMatrix};
 
 /// What an edge is, for per-class robust kernels and for PCM.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
@@ -43,7 +15,7 @@ pub enum EdgeClass {
     InterLoop,
 }
 
-/// `z ≈ Xᵢ⁻¹ Xⱼ` with information `Ω` (rotation-first tangent order, see [`crate::lie`]).
+/// `z ≈ Xᵢ⁻¹ Xⱼ` with information `Ω` (rotation-first tangent order, see [`doorslam_geometry::lie`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct BetweenFactor<G> {
     /// Index of pose i in the graph.
@@ -116,6 +88,9 @@ impl<G: LieGroup> PoseGraph<G> {
     pub fn poses_mut(&mut self) -> &mut [G] {
         &mut self.poses
     }
+    pub fn edges(&self) -> &[BetweenFactor<G>] {
+        &self.edges
+    }
     pub fn index_of(&self, key: u64) -> Option<usize> {
         self.index.get(&key).copied()
     }
@@ -169,7 +144,7 @@ impl<G: LieGroup> PoseGraph<G> {
 }
 
 /// `r = Log(Z⁻¹ Xᵢ⁻¹ Xⱼ)`.
-pub fn between_residual<G: LieGroup>(xi: &G, xj: &G, z: &G) -> crate::lie::Tangent {
+pub fn between_residual<G: LieGroup>(xi: &G, xj: &G, z: &G) -> doorslam_geometry::Tangent {
     z.inverse().compose(&xi.inverse().compose(xj)).log()
 }
 
@@ -179,7 +154,7 @@ pub fn between_linearized<G: LieGroup>(
     xi: &G,
     xj: &G,
     z: &G,
-) -> (crate::lie::Tangent, TangentMatrix, TangentMatrix) {
+) -> (doorslam_geometry::Tangent, TangentMatrix, TangentMatrix) {
     let xij = xi.inverse().compose(xj);
     let r = z.inverse().compose(&xij).log();
     let jr_inv = G::right_jacobian_inv(&r);

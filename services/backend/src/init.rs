@@ -19,10 +19,10 @@ use nalgebra::{
 };
 
 use crate::graph::{EdgeClass, PoseGraph};
-use crate::lie::{LieGroup, TangentMatrix};
 use crate::linear::SparseCholesky;
 use crate::solver::{var_of, SolveError};
 use crate::sparsity::BlockPattern;
+use doorslam_geometry::{LieGroup, TangentMatrix};
 
 /// Sets every pose not marked `known` by composing edges breadth-first from `start`,
 /// odometry edges first (they are the most accurate chain). Returns the poses reached.

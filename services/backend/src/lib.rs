@@ -1,11 +1,9 @@
 //! # doorslam-backend
 //!
-//! The estimator of one robot: pose graphs, SE(3) math, graph IO, sparse pose-graph
-//! optimization, outlier rejection and trajectory evaluation. A pure library: no threads,
+//! The estimator of one robot: pose graphs, graph IO, sparse pose-graph optimization,
+//! outlier rejection and trajectory evaluation, on the Lie groups of `doorslam-geometry`. A pure library: no threads,
 //! no I/O besides the file readers; the `backend` service wraps it.
 //!
-//! - [`lie`]: SE(2)/SE(3) `Exp`/`Log`, adjoints and right Jacobians (right perturbations,
-//!   rotation-first tangents);
 //! - [`graph`], [`g2o`]: pose graphs with multi-robot keys, g2o reading/writing;
 //! - [`solver`], [`init`], [`robust`], [`sparsity`], [`linear`]: Gauss-Newton /
 //!   Levenberg-Marquardt on the sparse normal equations (faer Cholesky, symbolic
@@ -18,7 +16,6 @@ pub mod g2o;
 pub mod graph;
 pub mod init;
 pub mod journal;
-pub mod lie;
 pub mod linear;
 pub mod outliers;
 pub mod robust;
@@ -26,9 +23,9 @@ pub mod service;
 pub mod solver;
 pub mod sparsity;
 
+pub use doorslam_geometry::{key, LieGroup};
 pub use g2o::{read_g2o, write_g2o, G2oFile, Graph, GraphError, UnknownTags};
-pub use graph::{key, BetweenFactor, EdgeClass, PoseGraph};
-pub use lie::LieGroup;
+pub use graph::{BetweenFactor, EdgeClass, PoseGraph};
 pub use linear::{LinearError, SparseCholesky};
 pub use robust::Kernel;
 pub use solver::{optimize, Method, Optimizer, SolveError, SolverOptions, Summary};

@@ -15,10 +15,10 @@ use std::time::Instant;
 use faer::Mat;
 
 use crate::graph::{between_linearized, between_residual, EdgeClass, PoseGraph};
-use crate::lie::{LieGroup, Tangent, TangentMatrix};
 use crate::linear::{LinearError, SparseCholesky};
 use crate::robust::{gnc_tls_weight, Kernel};
 use crate::sparsity::BlockPattern;
+use doorslam_geometry::{LieGroup, Tangent, TangentMatrix};
 
 /// Failures of the optimizer.
 #[derive(Debug, thiserror::Error)]

@@ -7,7 +7,7 @@
 
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 
-use crate::lie::TangentMatrix;
+use doorslam_geometry::TangentMatrix;
 
 /// The lower-triangular CSC pattern of a symmetric block matrix.
 pub struct BlockPattern {

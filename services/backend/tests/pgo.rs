@@ -64,7 +64,7 @@ fn assert_local_minimum<G: LieGroup>(g: &PoseGraph<G>, anchor: usize) {
     for p in (0..g.len()).filter(|&p| p != anchor) {
         for k in 0..G::DIM {
             for sign in [-1.0, 1.0] {
-                let mut d = doorslam_backend::lie::Tangent::zeros();
+                let mut d = doorslam_geometry::Tangent::zeros();
                 d[k] = sign * 1e-4;
                 probe.poses_mut()[p] = g.poses()[p].oplus(&d);
                 assert!(

@@ -26,7 +26,7 @@ pub enum CameraError {
     Frame(#[from] doorslam_ipc::FrameError),
 
     #[error("replay: {0}")]
-    Replay(#[from] doorslam_hil::replay::ReplayError),
+    Replay(#[from] doorslam_dataset::DatasetError),
     #[error(transparent)]
     Ipc(#[from] doorslam_ipc::IpcError),
 }

@@ -3,7 +3,7 @@
 
 use std::time::{Duration, Instant};
 
-use doorslam_hil::replay::Dataset;
+use doorslam_dataset::Dataset;
 use doorslam_ipc::{
     create_node, FrameHeader, Lifecycle, Sender, StereoFrame, Topic, FRAME_HAS_TRUTH,
 };
@@ -76,7 +76,7 @@ pub fn run(
         let truth = dataset
             .truth
             .as_ref()
-            .map(|t| doorslam_ipc::pose_to_array(&t[k]));
+            .map(|t| doorslam_geometry::pose_to_array(&t[k]));
         let header = FrameHeader {
             seq: report.published,
             stamp_ns: f.stamp_ns,

@@ -23,9 +23,10 @@ use std::time::{Duration, Instant};
 use nalgebra::{Isometry3, Matrix6};
 
 use super::max_clique::{maximum_clique, CliqueOptions, ConsistencyGraph};
-use crate::graph::{key, EdgeClass, PoseGraph};
-use crate::lie::{LieGroup, Tangent};
+use crate::graph::{EdgeClass, PoseGraph};
 use crate::robust::chi2_quantile;
+use doorslam_geometry::key;
+use doorslam_geometry::{LieGroup, Tangent};
 
 /// Failures of PCM.
 #[derive(Debug, thiserror::Error)]

@@ -1,4 +1,9 @@
-//! Datasets on disk, read frame by frame for replay into the on-robot pipeline.
+//! # doorslam-dataset
+//!
+//! Stereo datasets on disk, read frame by frame: the camera service's replay source reads
+//! them on the robot (hardware-in-the-loop runs), the offline tools and the simulator's
+//! output use the same layouts. A robot-side crate, so the camera never depends on the
+//! simulator.
 //!
 //! Layouts:
 //! - **KITTI odometry**: `image_0/NNNNNN.png` (left), `image_1/NNNNNN.png` (right),
@@ -16,9 +21,9 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::Isometry3;
 
-/// Failures of reading a dataset; each names the file or folder.
+/// Failures of reading (or writing) a dataset; each names the file or folder.
 #[derive(Debug, thiserror::Error)]
-pub enum ReplayError {
+pub enum DatasetError {
     #[error("{path}: {msg}")]
     Layout { path: PathBuf, msg: String },
     #[error("{path}: {source}")]
@@ -73,14 +78,14 @@ pub struct Dataset {
     pub truth: Option<Vec<Isometry3<f64>>>,
 }
 
-fn io(path: &Path) -> impl Fn(std::io::Error) -> ReplayError + '_ {
-    move |source| ReplayError::Io {
+fn io(path: &Path) -> impl Fn(std::io::Error) -> DatasetError + '_ {
+    move |source| DatasetError::Io {
         path: path.to_path_buf(),
         source,
     }
 }
 
-fn pngs(dir: &Path) -> Result<Vec<PathBuf>, ReplayError> {
+fn pngs(dir: &Path) -> Result<Vec<PathBuf>, DatasetError> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(io(dir))?
         .filter_map(|e| e.ok().map(|e| e.path()))
@@ -91,12 +96,12 @@ fn pngs(dir: &Path) -> Result<Vec<PathBuf>, ReplayError> {
 }
 
 /// The right image with the same file name as `left`, in `right_dir`.
-fn right_of(left: &Path, right_dir: &Path) -> Result<PathBuf, ReplayError> {
+fn right_of(left: &Path, right_dir: &Path) -> Result<PathBuf, DatasetError> {
     let r = right_dir.join(left.file_name().unwrap_or_default());
     if r.is_file() {
         Ok(r)
     } else {
-        Err(ReplayError::Layout {
+        Err(DatasetError::Layout {
             path: r,
             msg: "right image missing for this left image".into(),
         })
@@ -105,7 +110,7 @@ fn right_of(left: &Path, right_dir: &Path) -> Result<PathBuf, ReplayError> {
 
 impl Dataset {
     /// Opens a KITTI or EuRoC folder (detected from its contents).
-    pub fn open(root: &Path) -> Result<Self, ReplayError> {
+    pub fn open(root: &Path) -> Result<Self, DatasetError> {
         if root.join("image_0").is_dir() {
             return Self::open_kitti(root);
         }
@@ -114,13 +119,13 @@ impl Dataset {
                 return Self::open_euroc(root, &base);
             }
         }
-        Err(ReplayError::Layout {
+        Err(DatasetError::Layout {
             path: root.to_path_buf(),
             msg: "not a dataset: expected image_0/ + image_1/ (KITTI) or [mav0/]cam0/data + cam1/data (EuRoC)".into(),
         })
     }
 
-    fn open_kitti(root: &Path) -> Result<Self, ReplayError> {
+    fn open_kitti(root: &Path) -> Result<Self, DatasetError> {
         let left = pngs(&root.join("image_0"))?;
         let times_path = root.join("times.txt");
         let times: Vec<f64> = if times_path.is_file() {
@@ -133,7 +138,7 @@ impl Dataset {
                         .parse::<f64>()
                         .ok()
                         .filter(|t| t.is_finite() && *t >= 0.0)
-                        .ok_or_else(|| ReplayError::Line {
+                        .ok_or_else(|| DatasetError::Line {
                             path: times_path.clone(),
                             line: n + 1,
                             msg: format!("{l:?} is not a time in seconds"),
@@ -145,7 +150,7 @@ impl Dataset {
             (0..left.len()).map(|i| i as f64 * 0.1).collect()
         };
         if times.len() != left.len() {
-            return Err(ReplayError::Layout {
+            return Err(DatasetError::Layout {
                 path: times_path,
                 msg: format!(
                     "{} times for {} images in image_0/",
@@ -177,7 +182,7 @@ impl Dataset {
         Ok(dataset)
     }
 
-    fn open_euroc(root: &Path, base: &Path) -> Result<Self, ReplayError> {
+    fn open_euroc(root: &Path, base: &Path) -> Result<Self, DatasetError> {
         let mut frames = Vec::new();
         for (index, l) in pngs(&base.join("cam0/data"))?.into_iter().enumerate() {
             let name = l
@@ -185,7 +190,7 @@ impl Dataset {
                 .and_then(|s| s.to_str())
                 .unwrap_or_default()
                 .to_string();
-            let stamp_ns: u64 = name.parse().map_err(|_| ReplayError::Layout {
+            let stamp_ns: u64 = name.parse().map_err(|_| DatasetError::Layout {
                 path: l.clone(),
                 msg: "EuRoC image names must be nanosecond timestamps".into(),
             })?;
@@ -206,7 +211,7 @@ impl Dataset {
     }
 
     /// Attaches ground truth from a KITTI pose file (one line per frame of the full sequence).
-    pub fn with_truth(mut self, path: &Path) -> Result<Self, ReplayError> {
+    pub fn with_truth(mut self, path: &Path) -> Result<Self, DatasetError> {
         let text = std::fs::read_to_string(path).map_err(io(path))?;
         let mut poses = Vec::new();
         for (n, line) in text
@@ -219,7 +224,7 @@ impl Dataset {
                 .filter_map(|x| x.parse().ok())
                 .collect();
             if v.len() != 12 || v.iter().any(|x| !x.is_finite()) {
-                return Err(ReplayError::Line {
+                return Err(DatasetError::Line {
                     path: path.into(),
                     line: n + 1,
                     msg: "expected 12 finite numbers (KITTI pose)".into(),
@@ -234,7 +239,7 @@ impl Dataset {
         }
         let needed = self.frames.iter().map(|f| f.index + 1).max().unwrap_or(0);
         if poses.len() < needed {
-            return Err(ReplayError::Layout {
+            return Err(DatasetError::Layout {
                 path: path.into(),
                 msg: format!("{} poses for {needed} frames", poses.len()),
             });
@@ -244,9 +249,9 @@ impl Dataset {
     }
 
     /// Keeps part `part` (0-based) of `parts` consecutive, equal parts of the sequence.
-    pub fn split(mut self, part: usize, parts: usize) -> Result<Self, ReplayError> {
+    pub fn split(mut self, part: usize, parts: usize) -> Result<Self, DatasetError> {
         if parts == 0 || part >= parts {
-            return Err(ReplayError::Layout {
+            return Err(DatasetError::Layout {
                 path: self.root.clone(),
                 msg: format!("split part {part} of {parts}: need part < parts"),
             });
@@ -268,15 +273,15 @@ impl Dataset {
     }
 
     /// Decodes frame `k` (8-bit grayscale; colour is converted, 16-bit keeps the high byte).
-    pub fn load(&self, k: usize) -> Result<Pair, ReplayError> {
-        let f = self.frames.get(k).ok_or_else(|| ReplayError::Layout {
+    pub fn load(&self, k: usize) -> Result<Pair, DatasetError> {
+        let f = self.frames.get(k).ok_or_else(|| DatasetError::Layout {
             path: self.root.clone(),
             msg: format!("no frame {k}"),
         })?;
         let (w, h, left) = read_gray_png(&f.left)?;
         let (w2, h2, right) = read_gray_png(&f.right)?;
         if (w, h) != (w2, h2) {
-            return Err(ReplayError::Layout {
+            return Err(DatasetError::Layout {
                 path: f.right.clone(),
                 msg: format!("{w2}x{h2}, left image is {w}x{h}"),
             });
@@ -291,8 +296,8 @@ impl Dataset {
 }
 
 /// Reads a PNG as 8-bit grayscale.
-pub fn read_gray_png(path: &Path) -> Result<(u32, u32, Vec<u8>), ReplayError> {
-    let png_err = |msg: String| ReplayError::Png {
+pub fn read_gray_png(path: &Path) -> Result<(u32, u32, Vec<u8>), DatasetError> {
+    let png_err = |msg: String| DatasetError::Png {
         path: path.to_path_buf(),
         msg,
     };
@@ -326,12 +331,12 @@ pub fn write_gray_png(
     width: u32,
     height: u32,
     pixels: &[u8],
-) -> Result<(), ReplayError> {
+) -> Result<(), DatasetError> {
     let file = std::fs::File::create(path).map_err(io(path))?;
     let mut enc = png::Encoder::new(std::io::BufWriter::new(file), width, height);
     enc.set_color(png::ColorType::Grayscale);
     enc.set_depth(png::BitDepth::Eight);
-    let png_err = |e: png::EncodingError| ReplayError::Png {
+    let png_err = |e: png::EncodingError| DatasetError::Png {
         path: path.to_path_buf(),
         msg: e.to_string(),
     };

@@ -13,17 +13,23 @@
 //! differences, including the small-angle branches and angles near π.
 
 use nalgebra::{
-    Isometry2, Isometry3, Matrix3, Matrix6, Translation2, Translation3, UnitComplex,
-    UnitQuaternion, Vector3, Vector6,
+    Isometry2, Isometry3, Matrix3, Matrix6, Translation2, Translation3, UnitComplex, Vector3,
+    Vector6,
 };
+
+use crate::so3::{hat, SMALL_ANGLE, SO3};
+
+/// A rigid motion of 3-D space: nalgebra's isometry (translation + unit quaternion), with the
+/// Lie-group operations of [`LieGroup`]. An alias, not a wrapper, so OpenCV/nalgebra results
+/// need no conversion and `pose * point` keeps working.
+pub type SE3 = Isometry3<f64>;
+/// A rigid motion of the plane, as [`SE3`].
+pub type SE2 = Isometry2<f64>;
 
 /// Tangent vector, padded to 6 (see module docs).
 pub type Tangent = Vector6<f64>;
 /// Square matrix on the tangent space, padded to 6×6.
 pub type TangentMatrix = Matrix6<f64>;
-
-/// Below this angle the closed forms switch to Taylor expansions.
-const SMALL_ANGLE: f64 = 1e-4;
 
 /// A matrix Lie group used as a pose.
 pub trait LieGroup: Copy + Clone + std::fmt::Debug + PartialEq + Send + Sync + 'static {
@@ -52,87 +58,6 @@ pub trait LieGroup: Copy + Clone + std::fmt::Debug + PartialEq + Send + Sync + '
     }
     /// The 3-D translation of the pose (z = 0 in 2-D), for trajectory output and evaluation.
     fn translation3(&self) -> Vector3<f64>;
-}
-
-/// `[v]×`, the skew-symmetric matrix with `[v]× w = v × w`.
-pub fn hat(v: &Vector3<f64>) -> Matrix3<f64> {
-    Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
-}
-
-/// SO(3) logarithm from a unit quaternion, robust at 0 and near π.
-pub fn so3_log(q: &UnitQuaternion<f64>) -> Vector3<f64> {
-    let (mut w, mut v) = (q.w, q.imag());
-    if w < 0.0 {
-        // q and -q are the same rotation; take the one with angle in [0, π].
-        w = -w;
-        v = -v;
-    }
-    let n = v.norm();
-    if n < 1e-12 {
-        // θ ≈ 2n/w: first order, exact to O(n³).
-        return v * (2.0 / w);
-    }
-    let theta = 2.0 * n.atan2(w);
-    v * (theta / n)
-}
-
-/// SO(3) exponential.
-pub fn so3_exp(phi: &Vector3<f64>) -> UnitQuaternion<f64> {
-    let theta = phi.norm();
-    if theta < SMALL_ANGLE {
-        // q = (1, φ/2) normalized is exact to O(θ³).
-        let q = nalgebra::Quaternion::new(1.0, 0.5 * phi.x, 0.5 * phi.y, 0.5 * phi.z);
-        return UnitQuaternion::from_quaternion(q);
-    }
-    let (s, c) = (0.5 * theta).sin_cos();
-    let v = phi * (s / theta);
-    UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(c, v.x, v.y, v.z))
-}
-
-/// Coefficients `(1-cosθ)/θ²` and `(θ-sinθ)/θ³` of the SO(3) Jacobians.
-fn so3_coeffs(theta: f64) -> (f64, f64) {
-    if theta < SMALL_ANGLE {
-        let t2 = theta * theta;
-        (0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0)
-    } else {
-        let t2 = theta * theta;
-        (
-            (1.0 - theta.cos()) / t2,
-            (theta - theta.sin()) / (t2 * theta),
-        )
-    }
-}
-
-/// Left Jacobian of SO(3): `Jl(φ) = I + a[φ]× + b[φ]×²`.
-pub fn so3_left_jacobian(phi: &Vector3<f64>) -> Matrix3<f64> {
-    let (a, b) = so3_coeffs(phi.norm());
-    let k = hat(phi);
-    Matrix3::identity() + k * a + k * k * b
-}
-
-/// Right Jacobian of SO(3): `Jr(φ) = Jl(-φ)`.
-pub fn so3_right_jacobian(phi: &Vector3<f64>) -> Matrix3<f64> {
-    so3_left_jacobian(&-phi)
-}
-
-/// Coefficient `1/θ² - (1+cosθ)/(2θ sinθ)` of the inverse SO(3) Jacobians.
-fn so3_inv_coeff(theta: f64) -> f64 {
-    if theta < SMALL_ANGLE {
-        1.0 / 12.0 + theta * theta / 720.0
-    } else {
-        1.0 / (theta * theta) - (1.0 + theta.cos()) / (2.0 * theta * theta.sin())
-    }
-}
-
-/// `Jl(φ)⁻¹ = I - ½[φ]× + c[φ]×²`.
-pub fn so3_left_jacobian_inv(phi: &Vector3<f64>) -> Matrix3<f64> {
-    let k = hat(phi);
-    Matrix3::identity() - k * 0.5 + k * k * so3_inv_coeff(phi.norm())
-}
-
-/// `Jr(φ)⁻¹ = I + ½[φ]× + c[φ]×²`.
-pub fn so3_right_jacobian_inv(phi: &Vector3<f64>) -> Matrix3<f64> {
-    so3_left_jacobian_inv(&-phi)
 }
 
 /// Barfoot's `Q(ρ, φ)`, the translation-rotation block of the SE(3) left Jacobian.
@@ -182,15 +107,15 @@ impl LieGroup for Isometry3<f64> {
         Isometry3::inverse(self)
     }
     fn log(&self) -> Tangent {
-        let phi = so3_log(&self.rotation);
-        let rho = so3_left_jacobian_inv(&phi) * self.translation.vector;
+        let phi = SO3::from(self.rotation).log();
+        let rho = SO3::left_jacobian_inv(&phi) * self.translation.vector;
         Tangent::new(phi.x, phi.y, phi.z, rho.x, rho.y, rho.z)
     }
     fn exp(xi: &Tangent) -> Self {
         let (phi, rho) = split3(xi);
         Isometry3::from_parts(
-            Translation3::from(so3_left_jacobian(&phi) * rho),
-            so3_exp(&phi),
+            Translation3::from(SO3::left_jacobian(&phi) * rho),
+            SO3::exp(&phi).quaternion(),
         )
     }
     fn adjoint(&self) -> TangentMatrix {
@@ -204,7 +129,7 @@ impl LieGroup for Isometry3<f64> {
     }
     fn right_jacobian(xi: &Tangent) -> TangentMatrix {
         let (phi, rho) = split3(xi);
-        let jr = so3_right_jacobian(&phi);
+        let jr = SO3::right_jacobian(&phi);
         let mut j = TangentMatrix::zeros();
         j.fixed_view_mut::<3, 3>(0, 0).copy_from(&jr);
         j.fixed_view_mut::<3, 3>(3, 3).copy_from(&jr);
@@ -215,7 +140,7 @@ impl LieGroup for Isometry3<f64> {
     }
     fn right_jacobian_inv(xi: &Tangent) -> TangentMatrix {
         let (phi, rho) = split3(xi);
-        let a_inv = so3_right_jacobian_inv(&phi);
+        let a_inv = SO3::right_jacobian_inv(&phi);
         let q = se3_q(&-rho, &-phi);
         // [[A, 0], [Q, A]]⁻¹ = [[A⁻¹, 0], [-A⁻¹ Q A⁻¹, A⁻¹]].
         let mut j = TangentMatrix::zeros();

@@ -1,0 +1,344 @@
+//! The back-end's logic as a plain state machine fed by values: de-duplication, gap
+//! handling, odometry edges waiting for their keyframes, journaling before applying, and
+//! when to optimize. The iceoryx2 loop ([`super::run`]) only moves samples in and out, so
+//! all of this is tested without shared memory.
+
+use std::collections::{HashSet, VecDeque};
+
+use doorslam_geometry::information::{matrix_from_upper, upper_from_matrix};
+use doorslam_geometry::{check_information, key, pose_from_array, pose_to_array, SE3};
+use doorslam_ipc::{Keyframe, OdometryEdge};
+
+use super::input::{check_keyframe, check_odometry, InputError, KeyframeInput, OdometryInput};
+use crate::graph::PoseGraph;
+use crate::journal::{Entry, JournalError};
+use crate::solver::{Optimizer, SolveError, SolverOptions, Summary};
+
+/// Odometry edges may overtake their keyframe (two channels), so a few wait; an edge that
+/// still waits when this many queue up refers to a keyframe that will not come.
+pub const MAX_PENDING_EDGES: usize = 4096;
+
+/// Where accepted entries go before they are applied (the journal; a `Vec` in tests).
+pub trait Append {
+    fn append(&mut self, entry: &Entry) -> Result<(), JournalError>;
+}
+
+impl Append for crate::journal::Journal {
+    fn append(&mut self, entry: &Entry) -> Result<(), JournalError> {
+        crate::journal::Journal::append(self, entry)
+    }
+}
+
+impl Append for Vec<Entry> {
+    fn append(&mut self, entry: &Entry) -> Result<(), JournalError> {
+        self.push(entry.clone());
+        Ok(())
+    }
+}
+
+/// What happened to one received sample.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Outcome {
+    /// Journaled and in the graph.
+    Accepted,
+    /// Journaled and in the graph, but ids skipped `expected..got` (upstream lost data).
+    AcceptedAfterGap { expected: u64, got: u64 },
+    /// Already in the graph (history handed to a restarted back-end): skipped.
+    Duplicate,
+    /// An odometry edge whose keyframes have not all arrived: held until they do.
+    Waiting,
+    /// Refused by the input checks: not journaled.
+    Rejected(InputError),
+}
+
+/// Counters of everything the back-end did, for its exit log and for tests.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct BackendReport {
+    pub recovered_keyframes: usize,
+    pub recovered_edges: usize,
+    /// Journal entries that fail today's input checks (written by an older build).
+    pub rejected_from_journal: usize,
+    pub accepted_keyframes: usize,
+    pub accepted_edges: usize,
+    /// Keyframes and edges received again (history handed to a restarted back-end).
+    pub duplicates: usize,
+    pub gaps: usize,
+    /// Samples refused by the input checks (see [`super::input`]).
+    pub rejected: usize,
+    /// Edges dropped after waiting for keyframes that never came.
+    pub expired_edges: usize,
+    pub optimizations: usize,
+    pub failed_optimizations: usize,
+}
+
+/// One robot's graph and its bookkeeping.
+pub struct BackendState {
+    robot: u8,
+    robot_index: u32,
+    optimize_every: usize,
+    graph: PoseGraph<SE3>,
+    next_id: Option<u64>,
+    /// Odometry edges in the graph, by (from, to) keyframe id.
+    odometry: HashSet<(u64, u64)>,
+    pending: VecDeque<OdometryInput>,
+    since_optimized: usize,
+    optimizer: Option<Optimizer>,
+    report: BackendReport,
+}
+
+impl BackendState {
+    /// An empty graph for robot `robot_index` (below 26: keys are `'a' + index`).
+    pub fn new(robot_index: u32, optimize_every: usize) -> Option<Self> {
+        let robot = u8::try_from(robot_index)
+            .ok()
+            .filter(|r| *r < key::MAX_ROBOTS)?;
+        Some(Self {
+            robot,
+            robot_index,
+            optimize_every: optimize_every.max(1),
+            graph: PoseGraph::new(),
+            next_id: None,
+            odometry: HashSet::new(),
+            pending: VecDeque::new(),
+            since_optimized: 0,
+            optimizer: None,
+            report: BackendReport::default(),
+        })
+    }
+
+    pub fn graph(&self) -> &PoseGraph<SE3> {
+        &self.graph
+    }
+    pub fn report(&self) -> &BackendReport {
+        &self.report
+    }
+    /// Edges received but waiting for a keyframe.
+    pub fn pending(&self) -> usize {
+        self.pending.len()
+    }
+
+    fn key(&self, id: u64) -> u64 {
+        // Ids were checked against key::MAX_INDEX on entry, so this cannot fail.
+        key::symbol(self.robot, id).unwrap_or(u64::MAX)
+    }
+    fn has_keyframe(&self, id: u64) -> bool {
+        self.graph.index_of(self.key(id)).is_some()
+    }
+
+    /// Rebuilds the graph from journaled entries. An entry that fails today's checks (a
+    /// journal written before they existed) is counted and skipped, never applied.
+    pub fn recover(&mut self, entries: &[Entry]) {
+        for e in entries {
+            match e {
+                Entry::Keyframe { id, stamp_ns, pose } => match pose_from_array(pose) {
+                    Ok(p) if *id <= key::MAX_INDEX && !self.has_keyframe(*id) => {
+                        self.insert_keyframe(&KeyframeInput {
+                            id: *id,
+                            stamp_ns: *stamp_ns,
+                            pose: p,
+                            source: doorslam_ipc::KeyframeSource::VisualOdometry,
+                        });
+                        self.report.recovered_keyframes += 1;
+                    }
+                    Ok(_) if *id <= key::MAX_INDEX => {}
+                    _ => self.report.rejected_from_journal += 1,
+                },
+                Entry::Odometry {
+                    from,
+                    to,
+                    relative,
+                    information,
+                } => {
+                    let info = matrix_from_upper(information);
+                    let input = pose_from_array(relative).ok().and_then(|relative| {
+                        let ok = from != to
+                            && *from <= key::MAX_INDEX
+                            && *to <= key::MAX_INDEX
+                            && check_information(&info, 6).is_ok();
+                        ok.then_some(OdometryInput {
+                            from: *from,
+                            to: *to,
+                            relative,
+                            information: info,
+                        })
+                    });
+                    match input {
+                        Some(i) if self.can_insert_edge(&i) => {
+                            self.insert_edge(i);
+                            self.report.recovered_edges += 1;
+                        }
+                        Some(_) => {}
+                        None => self.report.rejected_from_journal += 1,
+                    }
+                }
+            }
+        }
+        // The optimizer is rebuilt lazily for the recovered graph.
+        self.since_optimized = self.optimize_every;
+    }
+
+    /// A keyframe sample: checked, de-duplicated, journaled, applied; then any edge that
+    /// waited for it.
+    pub fn on_keyframe(
+        &mut self,
+        kf: &Keyframe,
+        journal: &mut impl Append,
+    ) -> Result<Outcome, JournalError> {
+        let input = match check_keyframe(kf, self.robot_index) {
+            Ok(i) => i,
+            Err(e) => return Ok(self.rejected(e)),
+        };
+        if self.has_keyframe(input.id) {
+            self.report.duplicates += 1;
+            return Ok(Outcome::Duplicate);
+        }
+        journal.append(&Entry::Keyframe {
+            id: input.id,
+            stamp_ns: input.stamp_ns,
+            pose: pose_to_array(&input.pose),
+        })?;
+        let outcome = match self.next_id.filter(|n| *n != input.id) {
+            Some(expected) => {
+                self.report.gaps += 1;
+                Outcome::AcceptedAfterGap {
+                    expected,
+                    got: input.id,
+                }
+            }
+            None => Outcome::Accepted,
+        };
+        self.insert_keyframe(&input);
+        self.report.accepted_keyframes += 1;
+        self.since_optimized += 1;
+        self.flush_pending(journal)?;
+        Ok(outcome)
+    }
+
+    /// An odometry edge sample: checked, de-duplicated, then journaled and applied once
+    /// both keyframes are in the graph (held until then).
+    pub fn on_odometry(
+        &mut self,
+        edge: &OdometryEdge,
+        journal: &mut impl Append,
+    ) -> Result<Outcome, JournalError> {
+        let input = match check_odometry(edge, self.robot_index) {
+            Ok(i) => i,
+            Err(e) => return Ok(self.rejected(e)),
+        };
+        if self.odometry.contains(&(input.from, input.to))
+            || self
+                .pending
+                .iter()
+                .any(|p| (p.from, p.to) == (input.from, input.to))
+        {
+            self.report.duplicates += 1;
+            return Ok(Outcome::Duplicate);
+        }
+        if self.can_insert_edge(&input) {
+            self.journal_edge(&input, journal)?;
+            self.insert_edge(input);
+            self.report.accepted_edges += 1;
+            return Ok(Outcome::Accepted);
+        }
+        if self.pending.len() >= MAX_PENDING_EDGES {
+            // The oldest waiter is the one least likely to ever see its keyframe.
+            if let Some(old) = self.pending.pop_front() {
+                self.report.expired_edges += 1;
+                tracing::warn!(
+                    from = old.from,
+                    to = old.to,
+                    "backend: odometry edge dropped after waiting for keyframes that never came"
+                );
+            }
+        }
+        self.pending.push_back(input);
+        Ok(Outcome::Waiting)
+    }
+
+    /// Whether enough new keyframes arrived since the last optimization.
+    pub fn optimization_due(&self) -> bool {
+        self.since_optimized >= self.optimize_every && !self.graph.edges().is_empty()
+    }
+
+    /// Re-optimizes the graph warm-started from the current estimate (the optimizer's
+    /// symbolic factorization is kept while the pattern allows). A failure (a graph in the
+    /// middle of being built may be disconnected) leaves the estimate as it was.
+    pub fn optimize(&mut self) -> Result<Summary, SolveError> {
+        self.since_optimized = 0;
+        let opts = SolverOptions::default();
+        let result = match self.optimizer.as_mut() {
+            Some(opt) => opt.optimize(&mut self.graph, &opts),
+            None => Optimizer::new(&self.graph, 0)
+                .and_then(|opt| self.optimizer.insert(opt).optimize(&mut self.graph, &opts)),
+        };
+        match &result {
+            Ok(_) => self.report.optimizations += 1,
+            Err(_) => self.report.failed_optimizations += 1,
+        }
+        result
+    }
+
+    /// The newest keyframe's id and pose estimate.
+    pub fn latest_estimate(&self) -> Option<(u64, SE3)> {
+        let (&k, p) = self.graph.keys().last().zip(self.graph.poses().last())?;
+        Some((key::index(k), *p))
+    }
+
+    fn rejected(&mut self, e: InputError) -> Outcome {
+        self.report.rejected += 1;
+        Outcome::Rejected(e)
+    }
+
+    fn insert_keyframe(&mut self, input: &KeyframeInput) {
+        let k = self.key(input.id);
+        self.graph.add_pose(k, input.pose);
+        self.next_id = Some(self.next_id.map_or(input.id + 1, |n| n.max(input.id + 1)));
+    }
+
+    fn can_insert_edge(&self, e: &OdometryInput) -> bool {
+        self.has_keyframe(e.from)
+            && self.has_keyframe(e.to)
+            && !self.odometry.contains(&(e.from, e.to))
+    }
+
+    fn journal_edge(
+        &mut self,
+        e: &OdometryInput,
+        journal: &mut impl Append,
+    ) -> Result<(), JournalError> {
+        journal.append(&Entry::Odometry {
+            from: e.from,
+            to: e.to,
+            relative: pose_to_array(&e.relative),
+            information: upper_from_matrix(&e.information),
+        })
+    }
+
+    /// Adds an edge whose keyframes are in the graph (checked by the caller).
+    fn insert_edge(&mut self, e: OdometryInput) {
+        let (Some(a), Some(b)) = (
+            self.graph.index_of(self.key(e.from)),
+            self.graph.index_of(self.key(e.to)),
+        ) else {
+            return;
+        };
+        self.odometry.insert((e.from, e.to));
+        self.graph.add_edge(a, b, e.relative, e.information);
+    }
+
+    /// Applies every waiting edge whose keyframes have arrived.
+    fn flush_pending(&mut self, journal: &mut impl Append) -> Result<(), JournalError> {
+        let mut waiting = VecDeque::with_capacity(self.pending.len());
+        while let Some(e) = self.pending.pop_front() {
+            if self.can_insert_edge(&e) {
+                self.journal_edge(&e, journal)?;
+                self.insert_edge(e);
+                self.report.accepted_edges += 1;
+            } else {
+                waiting.push_back(e);
+            }
+        }
+        self.pending = waiting;
+        Ok(())
+    }
+}

@@ -1,0 +1,230 @@
+//! The back-end's state machine fed by values, no iceoryx2: bad samples are rejected before
+//! they are journaled, duplicates and gaps are handled, edges wait for their keyframes, the
+//! journal replays to the same graph, and optimization runs on schedule.
+
+use doorslam_backend::journal::Entry;
+use doorslam_backend::service::{BackendState, Outcome};
+use doorslam_geometry::information::upper_from_diagonal;
+use doorslam_geometry::{pose_from_array, pose_to_array, LieGroup, SE3};
+use doorslam_ipc::{Feature, Keyframe, KeyframeSource, OdometryEdge, MAX_KEYFRAME_FEATURES};
+use nalgebra::{Translation3, UnitQuaternion};
+
+const ROBOT: u32 = 1;
+
+/// Truth: a gentle arc, one keyframe per metre.
+fn truth(id: u64) -> SE3 {
+    let t = id as f64;
+    SE3::from_parts(
+        Translation3::new(t, 0.1 * t * t, 0.0),
+        UnitQuaternion::from_euler_angles(0.0, 0.0, 0.2 * t),
+    )
+}
+
+fn keyframe(id: u64) -> Keyframe {
+    Keyframe {
+        robot: ROBOT,
+        source: KeyframeSource::VisualOdometry as u32,
+        id,
+        frame_seq: id * 5,
+        stamp_ns: id * 1_000_000,
+        // A drifted estimate: the optimizer has work to do.
+        pose: pose_to_array(&(truth(id) * SE3::translation(0.05 * id as f64, 0.0, 0.0))),
+        n_features: 0,
+        reserved: 0,
+        features: [Feature::default(); MAX_KEYFRAME_FEATURES],
+    }
+}
+
+fn edge(from: u64, to: u64) -> OdometryEdge {
+    OdometryEdge {
+        robot: ROBOT,
+        reserved: 0,
+        from,
+        to,
+        stamp_ns: 0,
+        relative: pose_to_array(&(truth(from).inverse() * truth(to))),
+        information: upper_from_diagonal([1e4, 1e4, 1e4, 1e2, 1e2, 1e2]),
+    }
+}
+
+fn state() -> BackendState {
+    BackendState::new(ROBOT, 3).unwrap()
+}
+
+#[test]
+fn bad_samples_are_rejected_before_the_journal() {
+    let (mut s, mut journal) = (state(), Vec::new());
+    assert_eq!(
+        s.on_keyframe(&keyframe(0), &mut journal).unwrap(),
+        Outcome::Accepted
+    );
+    let mut nan = keyframe(1);
+    nan.pose[2] = f64::NAN;
+    let mut zero_q = keyframe(1);
+    zero_q.pose[3..].fill(0.0);
+    let mut source = keyframe(1);
+    source.source = 9;
+    let mut other_robot = keyframe(1);
+    other_robot.robot = 4;
+    let mut huge_id = keyframe(1);
+    huge_id.id = 1 << 56;
+    for (bad, field) in [
+        (nan, "pose"),
+        (zero_q, "pose"),
+        (source, "source"),
+        (other_robot, "robot"),
+        (huge_id, "id"),
+    ] {
+        match s.on_keyframe(&bad, &mut journal).unwrap() {
+            Outcome::Rejected(e) => {
+                assert_eq!((e.topic, e.field), ("keyframes", field), "{e}");
+                assert_eq!(e.robot, bad.robot);
+            }
+            other => panic!("{field}: {other:?}"),
+        }
+    }
+    assert_eq!(
+        s.on_keyframe(&keyframe(1), &mut journal).unwrap(),
+        Outcome::Accepted
+    );
+    let mut indefinite = edge(0, 1);
+    indefinite.information[0] = -1.0;
+    let mut nan_info = edge(0, 1);
+    nan_info.information[7] = f64::NAN;
+    let mut self_loop = edge(1, 1);
+    self_loop.relative = pose_to_array(&SE3::identity());
+    for bad in [indefinite, nan_info, self_loop] {
+        assert!(matches!(
+            s.on_odometry(&bad, &mut journal).unwrap(),
+            Outcome::Rejected(_)
+        ));
+    }
+    assert_eq!(s.report().rejected, 8);
+    // Only the two good keyframes reached the journal, and the graph has no edge.
+    assert_eq!(journal.len(), 2);
+    assert!(s.graph().edges().is_empty());
+    assert_eq!(
+        s.on_odometry(&edge(0, 1), &mut journal).unwrap(),
+        Outcome::Accepted
+    );
+    assert_eq!(journal.len(), 3);
+}
+
+#[test]
+fn duplicates_gaps_and_waiting_edges() {
+    let (mut s, mut journal) = (state(), Vec::new());
+    s.on_keyframe(&keyframe(0), &mut journal).unwrap();
+    // The edge to keyframe 1 overtakes it: it waits, then is applied after it.
+    assert_eq!(
+        s.on_odometry(&edge(0, 1), &mut journal).unwrap(),
+        Outcome::Waiting
+    );
+    assert_eq!(
+        s.on_odometry(&edge(0, 1), &mut journal).unwrap(),
+        Outcome::Duplicate
+    );
+    assert_eq!(s.pending(), 1);
+    assert_eq!(
+        s.on_keyframe(&keyframe(1), &mut journal).unwrap(),
+        Outcome::Accepted
+    );
+    assert_eq!(s.pending(), 0);
+    assert!(matches!(journal[2], Entry::Odometry { from: 0, to: 1, .. }));
+    // History re-sent after a restart: skipped, not journaled twice.
+    assert_eq!(
+        s.on_keyframe(&keyframe(1), &mut journal).unwrap(),
+        Outcome::Duplicate
+    );
+    assert_eq!(
+        s.on_odometry(&edge(0, 1), &mut journal).unwrap(),
+        Outcome::Duplicate
+    );
+    // Keyframe 2 was lost upstream.
+    assert_eq!(
+        s.on_keyframe(&keyframe(3), &mut journal).unwrap(),
+        Outcome::AcceptedAfterGap {
+            expected: 2,
+            got: 3
+        }
+    );
+    let r = s.report();
+    assert_eq!(
+        (r.accepted_keyframes, r.accepted_edges, r.duplicates, r.gaps),
+        (3, 1, 3, 1)
+    );
+    assert_eq!(journal.len(), 4);
+}
+
+#[test]
+fn optimizes_on_schedule_and_journal_replays_to_the_same_graph() {
+    let (mut s, mut journal) = (state(), Vec::new());
+    for id in 0..3 {
+        s.on_keyframe(&keyframe(id), &mut journal).unwrap();
+        if id > 0 {
+            s.on_odometry(&edge(id - 1, id), &mut journal).unwrap();
+        }
+    }
+    assert!(
+        s.optimization_due(),
+        "3 new keyframes with optimize_every = 3"
+    );
+    let summary = s.optimize().unwrap();
+    assert!(summary.final_chi2 < 1e-9 * summary.initial_chi2.max(1.0));
+    assert!(!s.optimization_due());
+    s.on_keyframe(&keyframe(3), &mut journal).unwrap();
+    s.on_odometry(&edge(2, 3), &mut journal).unwrap();
+    assert!(!s.optimization_due(), "one new keyframe is not enough");
+
+    // A restarted back-end replays the journal into the same graph.
+    let mut replayed = state();
+    replayed.recover(&journal);
+    assert_eq!(replayed.report().recovered_keyframes, 4);
+    assert_eq!(replayed.report().recovered_edges, 3);
+    assert_eq!(replayed.graph().keys(), s.graph().keys());
+    assert_eq!(replayed.graph().edges().len(), s.graph().edges().len());
+    // ... and optimizes it right away (its estimate may be stale).
+    assert!(replayed.optimization_due());
+    replayed.optimize().unwrap();
+    s.optimize().unwrap();
+    for (a, b) in replayed.graph().poses().iter().zip(s.graph().poses()) {
+        assert!((a.inverse() * b).log().norm() < 1e-6);
+    }
+    let (id, pose) = replayed.latest_estimate().unwrap();
+    assert_eq!(id, 3);
+    assert!((pose.inverse() * truth(3)).log().norm() < 1e-3);
+}
+
+#[test]
+fn a_poisoned_journal_from_an_older_build_is_not_applied() {
+    let good = |id: u64| Entry::Keyframe {
+        id,
+        stamp_ns: 0,
+        pose: pose_to_array(&truth(id)),
+    };
+    let mut nan_edge = Entry::Odometry {
+        from: 0,
+        to: 1,
+        relative: pose_to_array(&(truth(0).inverse() * truth(1))),
+        information: upper_from_diagonal([1.0; 6]),
+    };
+    if let Entry::Odometry { information, .. } = &mut nan_edge {
+        information[3] = f64::NAN;
+    }
+    let zero_quaternion = Entry::Keyframe {
+        id: 2,
+        stamp_ns: 0,
+        pose: [0.0; 7],
+    };
+    let mut s = state();
+    s.recover(&[good(0), good(1), nan_edge, zero_quaternion]);
+    let r = s.report();
+    assert_eq!(
+        (
+            r.recovered_keyframes,
+            r.recovered_edges,
+            r.rejected_from_journal
+        ),
+        (2, 0, 2)
+    );
+    assert!(pose_from_array(&pose_to_array(&s.graph().poses()[1])).is_ok());
+}
