@@ -47,6 +47,10 @@ pub struct SimKeyframesReport {
     /// Frames lost upstream (gaps in sequence numbers: frames are lossy by design).
     pub dropped_frames: u64,
     pub keyframes: u64,
+    /// Id of the first keyframe this process published (frames published before it
+    /// subscribed, or while a loaded machine kept it from reading, are not counted as
+    /// dropped: it cannot tell them from frames of an earlier run).
+    pub first_keyframe: Option<u64>,
 }
 
 /// Runs until SIGTERM/SIGINT.
@@ -89,6 +93,7 @@ pub fn run(config: &SimKeyframesConfig) -> Result<SimKeyframesReport, SimKeyfram
         // Ids follow the frame sequence, so a restarted sim-keyframes continues the
         // numbering instead of reusing ids the back-end already has.
         let id = h.seq / config.every;
+        report.first_keyframe.get_or_insert(id);
         keyframes.send_with(|slot| {
             slot.write(Keyframe {
                 robot: config.robot_index,
@@ -132,6 +137,7 @@ pub fn run(config: &SimKeyframesConfig) -> Result<SimKeyframesReport, SimKeyfram
         frames = report.frames,
         dropped = report.dropped_frames,
         keyframes = report.keyframes,
+        first_keyframe = report.first_keyframe.unwrap_or(0),
         undelivered,
         "sim-keyframes: stopped"
     );

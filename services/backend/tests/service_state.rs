@@ -177,7 +177,7 @@ fn optimizes_on_schedule_and_journal_replays_to_the_same_graph() {
 
     // A restarted back-end replays the journal into the same graph.
     let mut replayed = state();
-    replayed.recover(&journal);
+    replayed.replay(&journal);
     assert_eq!(replayed.report().recovered_keyframes, 4);
     assert_eq!(replayed.report().recovered_edges, 3);
     assert_eq!(replayed.graph().keys(), s.graph().keys());
@@ -216,7 +216,7 @@ fn a_poisoned_journal_from_an_older_build_is_not_applied() {
         pose: [0.0; 7],
     };
     let mut s = state();
-    s.recover(&[good(0), good(1), nan_edge, zero_quaternion]);
+    s.replay(&[good(0), good(1), nan_edge, zero_quaternion]);
     let r = s.report();
     assert_eq!(
         (

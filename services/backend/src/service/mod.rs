@@ -9,11 +9,15 @@
 //! restarted back-end is first handed the publishers' history (see
 //! `doorslam_ipc::channel`), most of which it journaled before it died. A gap is logged
 //! (it means an upstream service lost data) and accepted.
+//!
+//! The journal is opened for this robot's id (see [`crate::journal`]): another robot's
+//! journal or a newer format stops the service with the file untouched; corruption found on
+//! the way is logged as an error with the side file now holding the unread bytes.
 
 pub mod input;
 pub mod state;
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use doorslam_geometry::pose_to_array;
@@ -22,7 +26,7 @@ use doorslam_ipc::{
 };
 use serde::Deserialize;
 
-use crate::journal::{Journal, JournalError};
+use crate::journal::{Journal, JournalError, Recovery};
 pub use state::{Append, BackendReport, BackendState, Outcome};
 
 /// Failures of the back-end service.
@@ -93,7 +97,8 @@ pub struct BackendConfig {
     /// Robot id (service names) and index (keys: 'a' + index).
     pub robot: String,
     pub robot_index: u32,
-    /// The journal lives at `<state_dir>/backend.journal`.
+    /// The journal lives at `<state_dir>/backend.journal`; its header names `robot`, so
+    /// the back-end of one robot never resumes from another's.
     pub state_dir: PathBuf,
     /// Re-optimize after this many new keyframes.
     pub optimize_every: usize,
@@ -114,27 +119,64 @@ fn log_outcome(topic: Topic, id: u64, outcome: &Outcome) {
     }
 }
 
+/// Logs what opening the journal found; corruption is an error: records after the bad
+/// spot are not in the graph until someone restores them from the side file.
+fn log_recovery(path: &Path, recovery: &Recovery, report: &BackendReport) {
+    let journal = path.display();
+    if recovery.torn_header_bytes > 0 {
+        tracing::warn!(
+            %journal,
+            torn_header_bytes = recovery.torn_header_bytes,
+            "backend: journal header was torn at creation (no records yet), rewrote it"
+        );
+    } else if recovery.fresh {
+        tracing::info!(%journal, "backend: started a new journal");
+    }
+    if recovery.truncated_bytes > 0 {
+        tracing::warn!(
+            %journal,
+            torn_tail_bytes = recovery.truncated_bytes,
+            "backend: cut a torn last record off the journal"
+        );
+    }
+    if let Some(c) = &recovery.corruption {
+        tracing::error!(
+            %journal,
+            offset = c.offset,
+            preserved_bytes = c.bytes,
+            preserved_to = %c.preserved.as_deref().unwrap_or(Path::new("")).display(),
+            reason = %c.reason,
+            "backend: journal corrupt: kept the records before the bad one, moved it and \
+             everything after it into the side file, continuing without them"
+        );
+    }
+    if report.rejected_from_journal > 0 {
+        tracing::error!(
+            %journal,
+            entries = report.rejected_from_journal,
+            "backend: journal entries fail the input checks (written by an older build): skipped"
+        );
+    }
+    tracing::info!(
+        %journal,
+        keyframes = report.recovered_keyframes,
+        edges = report.recovered_edges,
+        torn_tail_bytes = report.truncated_bytes,
+        preserved_bytes = report.preserved_bytes,
+        "backend: recovered graph from journal"
+    );
+}
+
 /// Runs until SIGTERM/SIGINT. The journal is replayed first, so a restarted back-end
 /// resumes with the graph it had.
 pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
     let mut state = BackendState::new(config.robot_index, config.optimize_every)
         .ok_or(ServiceError::Robot(config.robot_index))?;
-    let (mut journal, recovery) = Journal::open(&config.state_dir.join("backend.journal"))?;
-    state.recover(&recovery.entries);
+    let path = config.state_dir.join("backend.journal");
+    let (mut journal, recovery) = Journal::open(&path, &config.robot)?;
+    state.recover(&recovery);
+    log_recovery(&path, &recovery, state.report());
     let recovered = state.report().clone();
-    tracing::info!(
-        journal = %journal.path().display(),
-        keyframes = recovered.recovered_keyframes,
-        edges = recovered.recovered_edges,
-        torn_tail_bytes = recovery.truncated_bytes,
-        "backend: recovered graph from journal"
-    );
-    if recovered.rejected_from_journal > 0 {
-        tracing::error!(
-            entries = recovered.rejected_from_journal,
-            "backend: journal entries fail the input checks (written by an older build): skipped"
-        );
-    }
 
     let (node, cleaned) = create_node("doorslam-backend")?;
     if cleaned > 0 {

@@ -11,7 +11,7 @@ use doorslam_ipc::{Keyframe, OdometryEdge};
 
 use super::input::{check_keyframe, check_odometry, InputError, KeyframeInput, OdometryInput};
 use crate::graph::PoseGraph;
-use crate::journal::{Entry, JournalError};
+use crate::journal::{Entry, JournalError, Recovery};
 use crate::solver::{Optimizer, SolveError, SolverOptions, Summary};
 
 /// Odometry edges may overtake their keyframe (two channels), so a few wait; an edge that
@@ -58,6 +58,11 @@ pub struct BackendReport {
     pub recovered_edges: usize,
     /// Journal entries that fail today's input checks (written by an older build).
     pub rejected_from_journal: usize,
+    /// Bytes of a torn last record cut off the journal.
+    pub truncated_bytes: u64,
+    /// Bytes of a corrupt journal moved into a side file, and that file.
+    pub preserved_bytes: u64,
+    pub preserved_to: Option<std::path::PathBuf>,
     pub accepted_keyframes: usize,
     pub accepted_edges: usize,
     /// Keyframes and edges received again (history handed to a restarted back-end).
@@ -125,9 +130,19 @@ impl BackendState {
         self.graph.index_of(self.key(id)).is_some()
     }
 
+    /// Rebuilds the graph from what [`crate::journal::Journal::open`] recovered.
+    pub fn recover(&mut self, recovery: &Recovery) {
+        self.report.truncated_bytes = recovery.truncated_bytes;
+        if let Some(c) = &recovery.corruption {
+            self.report.preserved_bytes = c.bytes;
+            self.report.preserved_to = c.preserved.clone();
+        }
+        self.replay(&recovery.entries);
+    }
+
     /// Rebuilds the graph from journaled entries. An entry that fails today's checks (a
     /// journal written before they existed) is counted and skipped, never applied.
-    pub fn recover(&mut self, entries: &[Entry]) {
+    pub fn replay(&mut self, entries: &[Entry]) {
         for e in entries {
             match e {
                 Entry::Keyframe { id, stamp_ns, pose } => match pose_from_array(pose) {
