@@ -110,6 +110,60 @@ fn config_errors_name_the_file_and_the_key() {
 }
 
 #[test]
+fn huge_or_tiny_times_are_errors_not_panics() {
+    // Each of these reached Duration::from_secs_f64 unchecked and panicked.
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("robot.toml");
+    std::fs::write(&cfg, "[robot]\nid = \"a\"\n").unwrap();
+    let cfg = cfg.to_str().unwrap();
+    let graph = data("outliers/pcm_simulation/spoiled/example_4robots/0.g2o");
+    for (args, flag) in [
+        (
+            vec!["up", "--config", cfg, "--grace-s", "1e300"],
+            "--grace-s",
+        ),
+        (
+            vec!["up", "--config", cfg, "--restart-delay-s", "1e20"],
+            "--restart-delay-s",
+        ),
+        (
+            vec!["pcm", &graph, "--skip-unknown", "--time-budget", "1e300"],
+            "--time-budget",
+        ),
+    ] {
+        let out = doorslam(&args);
+        let err = stderr(&out);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {err}");
+        assert!(
+            err.contains(flag) && !err.contains("panicked"),
+            "{args:?}: {err}"
+        );
+    }
+    let replay = |key: &str, value: &str| {
+        let cfg = dir.path().join("replay.toml");
+        std::fs::write(
+            &cfg,
+            format!("[camera]\nsource = \"replay\"\n[camera.replay]\npath = \"/tmp\"\n{key} = {value}\n"),
+        )
+        .unwrap();
+        doorslam(&["service", "camera", "--config", cfg.to_str().unwrap()])
+    };
+    for (key, value) in [
+        ("rate", "1e-300"),
+        ("rate", "nan"),
+        ("wait_for_subscribers_s", "1e300"),
+    ] {
+        let out = replay(key, value);
+        let err = stderr(&out);
+        assert_eq!(out.status.code(), Some(1), "{key} = {value}: {err}");
+        assert!(
+            err.contains(key) && !err.contains("panicked"),
+            "{key} = {value}: {err}"
+        );
+    }
+}
+
+#[test]
 fn example_robot_config_is_valid() {
     let cfg = concat!(".", "/deploy/robot.toml");
     let text = std::fs::read_to_string(cfg).unwrap();

@@ -3,9 +3,9 @@
 //! resumes from its journal. Each test uses its own robot id (iceoryx2 service names) and
 //! temporary folder, and bounds every wait.
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use doorslam_backend::journal::{Entry, Journal};
@@ -144,6 +144,64 @@ fn start_up(config: &Path, extra: &[&str]) -> Guard {
     )
 }
 
+/// `doorslam up`'s stderr, read line by line as it comes, so a test waits for events in
+/// the log instead of guessing how long a loaded machine takes.
+struct LogReader {
+    text: Arc<Mutex<String>>,
+    reader: std::thread::JoinHandle<()>,
+}
+
+impl LogReader {
+    fn new(up: &mut Child) -> Self {
+        let text = Arc::new(Mutex::new(String::new()));
+        let (sink, stderr) = (text.clone(), up.stderr.take().unwrap());
+        let reader = std::thread::spawn(move || {
+            use std::io::BufRead;
+            for line in std::io::BufReader::new(stderr)
+                .lines()
+                .map_while(Result::ok)
+            {
+                let mut log = sink.lock().unwrap();
+                log.push_str(&line);
+                log.push('\n');
+            }
+        });
+        Self { text, reader }
+    }
+
+    fn text(&self) -> String {
+        self.text.lock().unwrap().clone()
+    }
+
+    /// Waits until every one of `needles` has appeared in the log (a needle listed twice
+    /// must appear twice).
+    fn wait_for(&self, needles: &[&str], timeout: Duration) {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let log = self.text();
+            let seen = needles
+                .iter()
+                .all(|n| log.matches(n).count() >= needles.iter().filter(|m| *m == n).count());
+            if seen {
+                return;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "never saw {needles:?} in the log:\n{log}"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// The whole log, once `up` has exited.
+    fn finish(self) -> String {
+        let Self { text, reader } = self;
+        reader.join().unwrap();
+        let log = text.lock().unwrap().clone();
+        log
+    }
+}
+
 #[test]
 fn replay_to_sim_keyframes_to_backend_delivers_every_keyframe_in_order() {
     let tmp = tempfile::tempdir().unwrap();
@@ -152,27 +210,14 @@ fn replay_to_sim_keyframes_to_backend_delivers_every_keyframe_in_order() {
     let robot = format!("pipe{}", std::process::id());
     let (config, journal) = write_robot(tmp.path(), &robot, &data, 3);
     let mut up = start_up(&config, &[]);
-    let mut stderr = up.stderr.take().unwrap();
-    let log = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = stderr.read_to_string(&mut s);
-        s
-    });
-    // 60 frames at 100 Hz: wait for the journal to fill and settle.
-    let deadline = Instant::now() + Duration::from_secs(30);
-    let mut last = (0, Instant::now());
-    while Instant::now() < deadline {
-        let n = keyframe_ids(&journal).0.len();
-        if n != last.0 {
-            last = (n, Instant::now());
-        } else if n > 0 && last.1.elapsed() > Duration::from_millis(1500) {
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(100));
-    }
+    let log = LogReader::new(&mut up);
+    // Stop once the replay has ended: `up` stops the services in reverse start order, so
+    // sim-keyframes finishes its queue first and the back-end journals everything it was
+    // sent before it stops. No guess at how long a loaded machine needs.
+    log.wait_for(&["replay: finished"], Duration::from_secs(60));
     signal(&up, libc::SIGINT);
     let status = wait_exit(&mut up, Duration::from_secs(20));
-    let log = log.join().unwrap();
+    let log = log.finish();
     assert!(status.success(), "doorslam up failed ({status}):\n{log}");
     assert!(
         log.contains("[camera]") && log.contains("replay: finished"),
@@ -436,29 +481,14 @@ fn producer_carries_on_when_its_consumer_stays_dead() {
 /// holds every keyframe sim-keyframes published, in order, once.
 #[test]
 fn backend_crash_under_up_loses_no_keyframe() {
-    use std::sync::{Arc, Mutex};
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("seq");
     write_dataset(&data, 400);
     let robot = format!("crash{}", std::process::id());
     let (config, journal) = write_robot(tmp.path(), &robot, &data, 2);
     let mut up = start_up(&config, &["--restart-delay-s", "0.5"]);
-    let log = Arc::new(Mutex::new(String::new()));
-    let reader = {
-        let (log, stderr) = (log.clone(), up.stderr.take().unwrap());
-        std::thread::spawn(move || {
-            use std::io::BufRead;
-            for line in std::io::BufReader::new(stderr)
-                .lines()
-                .map_while(Result::ok)
-            {
-                let mut log = log.lock().unwrap();
-                log.push_str(&line);
-                log.push('\n');
-            }
-        })
-    };
-    let text = || log.lock().unwrap().clone();
+    let log = LogReader::new(&mut up);
+    let text = || log.text();
 
     let deadline = Instant::now() + Duration::from_secs(30);
     while keyframe_ids(&journal).0.len() < 30 {
@@ -477,23 +507,16 @@ fn backend_crash_under_up_loses_no_keyframe() {
     // SAFETY: kill(2) of the back-end process `up` started for this test.
     unsafe { libc::kill(pid, libc::SIGKILL) };
 
-    // Wait for the replay to end and the restarted back-end to catch up, then stop.
-    let deadline = Instant::now() + Duration::from_secs(60);
-    let mut last = (0, Instant::now());
-    loop {
-        assert!(Instant::now() < deadline, "run did not settle:\n{}", text());
-        let n = keyframe_ids(&journal).0.len();
-        if n != last.0 {
-            last = (n, Instant::now());
-        } else if text().contains("replay: finished") && last.1.elapsed() > Duration::from_secs(2) {
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(100));
-    }
+    // Wait for the replay to end and the back-end to be back, then stop: sim-keyframes
+    // hands its history to the restarted back-end at the latest when it stops (before the
+    // back-end, which drains its queue).
+    log.wait_for(
+        &["replay: finished", "backend: ready", "backend: ready"],
+        Duration::from_secs(60),
+    );
     signal(&up, libc::SIGINT);
     let status = wait_exit(&mut up, Duration::from_secs(20));
-    reader.join().unwrap();
-    let log = text();
+    let log = log.finish();
     assert!(status.success(), "doorslam up failed ({status}):\n{log}");
     assert!(
         log.contains("[up] backend failed (signal: 9") && log.contains("restarting in"),

@@ -126,6 +126,10 @@ pub fn run(config: &SimKeyframesConfig) -> Result<SimKeyframesReport, SimKeyfram
         tracing::debug!(id, seq = h.seq, "sim-keyframes: keyframe published");
     }
     lifecycle.stopping();
+    // A consumer restarted since our last send has not been handed what it missed yet:
+    // hand it over now, while this process still holds the history.
+    keyframes.catch_up_receivers()?;
+    odometry.catch_up_receivers()?;
     let undelivered = keyframes.undelivered() + odometry.undelivered();
     if undelivered > 0 {
         tracing::warn!(

@@ -99,6 +99,19 @@ fn init_logging() {
         .try_init();
 }
 
+/// A duration given in seconds on the command line: finite, `0 ..= max_s` (an unbounded
+/// value would overflow `Duration` and panic), with an error naming the flag.
+pub fn seconds(flag: &str, value: f64, max_s: f64) -> anyhow::Result<std::time::Duration> {
+    anyhow::ensure!(
+        value.is_finite() && (0.0..=max_s).contains(&value),
+        "{flag} {value}: must be a number of seconds from 0 to {max_s}"
+    );
+    Ok(std::time::Duration::from_secs_f64(value))
+}
+
+/// The longest wait a flag may ask for: a day.
+pub const MAX_WAIT_S: f64 = 86_400.0;
+
 #[cfg(test)]
 mod tests {
     use clap::CommandFactory;

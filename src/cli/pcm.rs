@@ -2,7 +2,6 @@
 
 use std::collections::BTreeSet;
 use std::path::PathBuf;
-use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -92,11 +91,7 @@ pub fn run(args: PcmArgs) -> Result<()> {
     let mut pcm = Pcm::new(args.threshold, scope).context("--threshold")?;
     pcm.min_clique = args.min_clique;
     if let Some(b) = args.time_budget {
-        anyhow::ensure!(
-            b.is_finite() && b >= 0.0,
-            "--time-budget {b}: must be a non-negative number of seconds"
-        );
-        pcm.budget = Some(Duration::from_secs_f64(b));
+        pcm.budget = Some(super::seconds("--time-budget", b, super::MAX_WAIT_S)?);
     }
     let names = args
         .files

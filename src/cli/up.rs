@@ -101,18 +101,19 @@ fn forward(name: String, stream: impl std::io::Read + Send + 'static) {
     });
 }
 
-/// SIGTERM to every running service, then SIGKILL to those still running after `grace`.
+/// Stops the services in the reverse of their start order, as systemd does: producers
+/// (camera, front-end) stop before the consumers they feed, so a consumer drains what was
+/// sent before it stops and nothing in flight is lost. Each gets SIGTERM, then SIGKILL if
+/// it is still running after `grace`.
 fn terminate(services: &mut [Service], grace: Duration) {
     // Finished services and those waiting for a restart have already been reaped.
     let running = |s: &Service| !s.finished && s.restart_at.is_none();
-    for s in services.iter().filter(|s| running(s)) {
+    for Service { name, child, .. } in services.iter_mut().rev().filter(|s| running(s)) {
         // SAFETY: kill(2) on our own child's pid; no memory is involved.
         unsafe {
-            libc::kill(s.child.id() as libc::pid_t, libc::SIGTERM);
+            libc::kill(child.id() as libc::pid_t, libc::SIGTERM);
         }
-    }
-    let deadline = Instant::now() + grace;
-    for Service { name, child, .. } in services.iter_mut().filter(|s| running(s)) {
+        let deadline = Instant::now() + grace;
         loop {
             match child.try_wait() {
                 Ok(Some(status)) => {
@@ -135,16 +136,9 @@ fn terminate(services: &mut [Service], grace: Duration) {
 
 pub fn run(args: UpArgs) -> Result<()> {
     let config = RobotConfig::load(&args.config)?;
-    anyhow::ensure!(
-        args.grace_s.is_finite() && args.grace_s >= 0.0,
-        "--grace-s must be >= 0"
-    );
-    anyhow::ensure!(
-        args.restart_delay_s.is_finite() && args.restart_delay_s >= 0.0,
-        "--restart-delay-s must be >= 0"
-    );
-    let grace = Duration::from_secs_f64(args.grace_s);
-    let restart_delay = Duration::from_secs_f64(args.restart_delay_s);
+    let grace = super::seconds("--grace-s", args.grace_s, super::MAX_WAIT_S)?;
+    let restart_delay =
+        super::seconds("--restart-delay-s", args.restart_delay_s, super::MAX_WAIT_S)?;
     let exe = std::env::current_exe().context("locating the doorslam binary")?;
     let stop = Arc::new(AtomicBool::new(false));
     let flag = stop.clone();

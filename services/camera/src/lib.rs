@@ -157,17 +157,19 @@ impl CameraConfig {
                     "camera.source = \"replay\" needs a [camera.replay] section with a path".into(),
                 ))
             }
-            (_, Some(r)) if !(r.rate.is_finite() && r.rate >= 0.0) => {
+            (_, Some(r))
+                if !(r.rate == 0.0 || (MIN_REPLAY_RATE..=MAX_REPLAY_RATE).contains(&r.rate)) =>
+            {
                 return Err(CameraError::Config(format!(
-                    "camera.replay.rate = {}, must be >= 0 (0 = as fast as possible)",
+                    "camera.replay.rate = {}, must be 0 (as fast as possible) or from {MIN_REPLAY_RATE} to {MAX_REPLAY_RATE}",
                     r.rate
                 )))
             }
             (_, Some(r))
-                if !(r.wait_for_subscribers_s.is_finite() && r.wait_for_subscribers_s >= 0.0) =>
+                if !(0.0..=MAX_WAIT_FOR_SUBSCRIBERS_S).contains(&r.wait_for_subscribers_s) =>
             {
                 return Err(CameraError::Config(format!(
-                    "camera.replay.wait_for_subscribers_s = {}, must be >= 0",
+                    "camera.replay.wait_for_subscribers_s = {}, must be from 0 to {MAX_WAIT_FOR_SUBSCRIBERS_S} s",
                     r.wait_for_subscribers_s
                 )))
             }
@@ -183,6 +185,13 @@ impl CameraConfig {
             .collect()
     }
 }
+
+/// Replay speeds (× real time) a config may ask for; 0 means as fast as possible. Bounded
+/// so that every frame's due time is a representable `Duration`.
+pub const MIN_REPLAY_RATE: f64 = 1e-3;
+pub const MAX_REPLAY_RATE: f64 = 1e3;
+/// The longest a replay waits for its first subscriber (an hour).
+pub const MAX_WAIT_FOR_SUBSCRIBERS_S: f64 = 3600.0;
 
 /// The v4l2 video devices present on this machine, sorted by path.
 pub fn enumerate_devices() -> Vec<PathBuf> {

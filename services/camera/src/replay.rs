@@ -66,8 +66,12 @@ pub fn run(
                 break;
             }
         } else if config.rate > 0.0 {
-            let due =
-                Duration::from_secs_f64(f.stamp_ns.saturating_sub(t0) as f64 * 1e-9 / config.rate);
+            // The rate is bounded by the config check; a dataset spanning more than
+            // Duration's range would simply never be due.
+            let due = Duration::try_from_secs_f64(
+                f.stamp_ns.saturating_sub(t0) as f64 * 1e-9 / config.rate,
+            )
+            .unwrap_or(Duration::MAX);
             if let Some(wait) = due.checked_sub(start.elapsed()) {
                 std::thread::sleep(wait);
             }

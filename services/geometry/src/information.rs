@@ -59,7 +59,7 @@ pub fn upper_from_diagonal(diagonal: [f64; 6]) -> [f64; 21] {
 
 /// The top-left `dim × dim` block (the part a group of dimension `dim` uses).
 fn block(m: &TangentMatrix, dim: usize) -> DMatrix<f64> {
-    m.view((0, 0), (dim, dim)).into_owned().into()
+    m.view((0, 0), (dim, dim)).into_owned()
 }
 
 /// Checks the top-left `dim × dim` block: every entry finite, symmetric (to 1e-9 relative

@@ -230,6 +230,19 @@ pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
         }
     }
     lifecycle.stopping();
+    // Whatever reached the queues before the stop is journaled: producers stop first
+    // (`doorslam up` and the systemd units stop in reverse start order), so this is all
+    // they sent.
+    while let Some(sample) = keyframes.try_recv()? {
+        let kf = sample.payload();
+        let outcome = state.on_keyframe(kf, &mut journal)?;
+        log_outcome(Topic::Keyframes, kf.id, &outcome);
+    }
+    while let Some(sample) = odometry.try_recv()? {
+        let e = sample.payload();
+        let outcome = state.on_odometry(e, &mut journal)?;
+        log_outcome(Topic::Odometry, e.to, &outcome);
+    }
     tracing::info!(report = ?state.report(), pending_edges = state.pending(), "backend: stopped");
     Ok(state.report().clone())
 }
