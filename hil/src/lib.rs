@@ -24,7 +24,7 @@
 //!
 //! Figures (`hil/docs/stereo_pair.png`, `hil/docs/aliasing.png`) come from
 //! `cargo run --release -p doorslam-hil --example render_pair`; the throughput is printed
-//! by `cargo test --release -p doorslam-hil --test render throughput -- --nocapture`.
+//! by `cargo bench -p doorslam-hil --bench render`.
 
 mod camera;
 mod cull;

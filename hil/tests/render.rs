@@ -3,8 +3,6 @@
 //! Each geometric test comes with a negative control (the same check with deliberately
 //! wrong geometry) to show the check can fail.
 
-use std::time::Instant;
-
 use doorslam_hil::{
     look_at, render_stereo, render_view, Building, DepthMap, Face, GrayImage, Ray, StereoCamera,
     World,
@@ -491,28 +489,5 @@ fn both_presets_render_structured_textured_images() {
                 assert!(corners > 300, "too few corners: {corners}");
             }
         }
-    }
-}
-
-#[test]
-fn throughput_is_reported() {
-    let world = World::town(SEED);
-    let poses = poses();
-    for camera in [StereoCamera::euroc_like(), StereoCamera::kitti_like()] {
-        let frames = 30;
-        let start = Instant::now();
-        let mut checksum = 0u64;
-        for k in 0..frames {
-            let pair = render_stereo(&world, &camera, &poses[k % poses.len()]);
-            checksum += pair.left.pixels()[0] as u64 + pair.right.pixels()[0] as u64;
-        }
-        let secs = start.elapsed().as_secs_f64();
-        eprintln!(
-            "{}x{}: {:.1} stereo pairs/s on {} threads (checksum {checksum})",
-            camera.width(),
-            camera.height(),
-            frames as f64 / secs,
-            rayon::current_num_threads()
-        );
     }
 }
