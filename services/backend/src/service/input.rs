@@ -147,16 +147,55 @@ pub fn check_odometry(e: &OdometryEdge, robot_index: u32) -> Result<OdometryInpu
         robot: e.robot,
     };
     c.robot_is(robot_index)?;
-    let from = c.id("from", e.from)?;
-    let to = c.id("to", e.to)?;
+    odometry_fields(&c, e.from, e.to, &e.relative, &e.information)
+}
+
+/// The same rules for an edge read back from the journal (written by an older build,
+/// before these checks existed).
+pub(crate) fn check_journaled_odometry(
+    robot_index: u32,
+    from: u64,
+    to: u64,
+    relative: &[f64; 7],
+    information: &[f64; 21],
+) -> Result<OdometryInput, InputError> {
+    let c = Check {
+        topic: Topic::Odometry,
+        robot: robot_index,
+    };
+    odometry_fields(&c, from, to, relative, information)
+}
+
+/// The same rules for a keyframe read back from the journal.
+pub(crate) fn check_journaled_keyframe(
+    robot_index: u32,
+    id: u64,
+    pose: &[f64; 7],
+) -> Result<(u64, SE3), InputError> {
+    let c = Check {
+        topic: Topic::Keyframes,
+        robot: robot_index,
+    };
+    Ok((c.id("id", id)?, c.pose("pose", pose)?))
+}
+
+fn odometry_fields(
+    c: &Check,
+    from: u64,
+    to: u64,
+    relative: &[f64; 7],
+    information: &[f64; 21],
+) -> Result<OdometryInput, InputError> {
+    let from = c.id("from", from)?;
+    let to = c.id("to", to)?;
     if from == to {
         return Err(c.fail("to", format!("edge from keyframe {from} to itself")));
     }
     Ok(OdometryInput {
         from,
         to,
-        relative: c.pose("relative", &e.relative)?,
-        information: c.information("information", &e.information)?,
+        relative: c.pose("relative", relative)?,
+        information: c.information("information", information)?,
     })
 }
 

@@ -5,11 +5,14 @@
 
 use std::collections::{HashSet, VecDeque};
 
-use doorslam_geometry::information::{matrix_from_upper, upper_from_matrix};
-use doorslam_geometry::{check_information, key, pose_from_array, pose_to_array, SE3};
+use doorslam_geometry::information::upper_from_matrix;
+use doorslam_geometry::{key, pose_to_array, SE3};
 use doorslam_ipc::{Keyframe, OdometryEdge};
 
-use super::input::{check_keyframe, check_odometry, InputError, KeyframeInput, OdometryInput};
+use super::input::{
+    check_journaled_keyframe, check_journaled_odometry, check_keyframe, check_odometry, InputError,
+    KeyframeInput, OdometryInput,
+};
 use crate::graph::PoseGraph;
 use crate::journal::{Entry, JournalError, Recovery};
 use crate::solver::{Optimizer, SolveError, SolverOptions, Summary};
@@ -144,48 +147,36 @@ impl BackendState {
     /// journal written before they existed) is counted and skipped, never applied.
     pub fn replay(&mut self, entries: &[Entry]) {
         for e in entries {
-            match e {
-                Entry::Keyframe { id, stamp_ns, pose } => match pose_from_array(pose) {
-                    Ok(p) if *id <= key::MAX_INDEX && !self.has_keyframe(*id) => {
-                        self.insert_keyframe(&KeyframeInput {
-                            id: *id,
-                            stamp_ns: *stamp_ns,
-                            pose: p,
-                            source: doorslam_ipc::KeyframeSource::VisualOdometry,
-                        });
-                        self.report.recovered_keyframes += 1;
-                    }
-                    Ok(_) if *id <= key::MAX_INDEX => {}
-                    _ => self.report.rejected_from_journal += 1,
-                },
+            let checked = match e {
+                Entry::Keyframe { id, stamp_ns, pose } => {
+                    check_journaled_keyframe(self.robot_index, *id, pose).map(|(id, pose)| {
+                        if !self.has_keyframe(id) {
+                            self.insert_keyframe(&KeyframeInput {
+                                id,
+                                stamp_ns: *stamp_ns,
+                                pose,
+                                source: doorslam_ipc::KeyframeSource::VisualOdometry,
+                            });
+                            self.report.recovered_keyframes += 1;
+                        }
+                    })
+                }
                 Entry::Odometry {
                     from,
                     to,
                     relative,
                     information,
-                } => {
-                    let info = matrix_from_upper(information);
-                    let input = pose_from_array(relative).ok().and_then(|relative| {
-                        let ok = from != to
-                            && *from <= key::MAX_INDEX
-                            && *to <= key::MAX_INDEX
-                            && check_information(&info, 6).is_ok();
-                        ok.then_some(OdometryInput {
-                            from: *from,
-                            to: *to,
-                            relative,
-                            information: info,
-                        })
-                    });
-                    match input {
-                        Some(i) if self.can_insert_edge(&i) => {
-                            self.insert_edge(i);
+                } => check_journaled_odometry(self.robot_index, *from, *to, relative, information)
+                    .map(|edge| {
+                        if self.can_insert_edge(&edge) {
+                            self.insert_edge(edge);
                             self.report.recovered_edges += 1;
                         }
-                        Some(_) => {}
-                        None => self.report.rejected_from_journal += 1,
-                    }
-                }
+                    }),
+            };
+            if let Err(e) = checked {
+                tracing::error!("backend: journal entry skipped: {e}");
+                self.report.rejected_from_journal += 1;
             }
         }
         // The optimizer is rebuilt lazily for the recovered graph.
