@@ -1,8 +1,8 @@
 //! # doorslam-hil
 //!
 //! Hardware-in-the-loop and simulation. Landed so far: the synthetic stereo world
-//! renderer (below, issue "HIL/simulation") and [`posegraph_sim`], the multi-robot
-//! pose-graph simulator.
+//! renderer (below, issue "HIL/simulation"), [`posegraph_sim`], the multi-robot
+//! pose-graph simulator, and [`experiments`] run on it (the PCM threshold sweep).
 //!
 //! ## Synthetic stereo world
 //!
@@ -29,6 +29,7 @@
 mod camera;
 mod cull;
 mod error;
+pub mod experiments;
 pub mod flights;
 mod geometry;
 mod image;

@@ -5,8 +5,12 @@ use std::time::Duration;
 
 use anyhow::{bail, Result};
 use clap::{Args, Subcommand};
+use doorslam_ipc_bench::{
+    self as bench, IpcOptions, PeerCommand, PeerEndpoint, PeerSpec, Transport,
+};
 
-use crate::bench::{self, IpcOptions, PeerEndpoint, PeerSpec, Transport};
+/// The hidden subcommand the benchmark re-executes this binary with.
+const PEER_SUBCOMMAND: [&str; 2] = ["bench", "ipc-peer"];
 
 #[derive(Debug, Args)]
 pub struct BenchArgs {
@@ -59,6 +63,7 @@ fn parse_cpu_pair(s: &str) -> Result<(usize, usize), String> {
     Ok((cpu(a)?, cpu(b)?))
 }
 
+/// The peer's arguments, as [`PeerSpec::to_args`] spells them.
 #[derive(Debug, Args)]
 pub struct PeerArgs {
     #[arg(long)]
@@ -84,26 +89,30 @@ pub struct PeerArgs {
     pub pin_cpu: Option<usize>,
 }
 
+impl PeerArgs {
+    fn spec(self) -> Result<PeerSpec> {
+        if !(self.deadline_s.is_finite() && self.deadline_s > 0.0) {
+            bail!("--deadline-s must be a positive number of seconds");
+        }
+        Ok(PeerSpec {
+            transport: self.transport,
+            width: self.width,
+            height: self.height,
+            endpoint: PeerEndpoint {
+                name: self.name,
+                connect: self.connect,
+                fd: self.fd,
+            },
+            deadline: Duration::from_secs_f64(self.deadline_s),
+            pin_cpu: self.pin_cpu,
+        })
+    }
+}
+
 pub fn run(args: BenchArgs) -> Result<()> {
     match args.command {
         BenchCommand::Ipc(args) => run_ipc(args),
-        BenchCommand::IpcPeer(args) => {
-            if !(args.deadline_s.is_finite() && args.deadline_s > 0.0) {
-                bail!("--deadline-s must be a positive number of seconds");
-            }
-            bench::run_peer(&PeerSpec {
-                transport: args.transport,
-                width: args.width,
-                height: args.height,
-                endpoint: PeerEndpoint {
-                    name: args.name,
-                    connect: args.connect,
-                    fd: args.fd,
-                },
-                deadline: Duration::from_secs_f64(args.deadline_s),
-                pin_cpu: args.pin_cpu,
-            })
-        }
+        BenchCommand::IpcPeer(args) => Ok(bench::run_peer(&args.spec()?)?),
     }
 }
 
@@ -122,6 +131,7 @@ fn run_ipc(args: IpcArgs) -> Result<()> {
         frames: args.frames,
         rounds: args.rounds,
         pin_cpus: args.pin_cpus,
+        peer: PeerCommand::current_exe(PEER_SUBCOMMAND)?,
     };
     let report = bench::run_ipc(&opts, &|case| eprintln!("bench ipc: {case}"))?;
     if args.json {
@@ -141,4 +151,56 @@ fn run_ipc(args: IpcArgs) -> Result<()> {
         bail!("{} case(s) failed: {}", failed.len(), failed.join("; "));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(subcommand)]
+        command: BenchCommand,
+    }
+
+    /// What the library writes on the peer's command line is what this subcommand reads.
+    #[test]
+    fn peer_arguments_round_trip_through_the_hidden_subcommand() {
+        let specs = [
+            PeerSpec {
+                transport: Transport::ZenohShm,
+                width: 752,
+                height: 480,
+                endpoint: PeerEndpoint {
+                    name: "doorslam/bench/bench1c2/frames".into(),
+                    connect: Some("tcp/127.0.0.1:7447".into()),
+                    fd: None,
+                },
+                deadline: Duration::from_secs_f64(3.0 * 0.3 + 90.0),
+                pin_cpu: Some(1),
+            },
+            PeerSpec {
+                transport: Transport::EventfdFloor,
+                width: 1280,
+                height: 720,
+                endpoint: PeerEndpoint {
+                    name: String::new(),
+                    connect: None,
+                    fd: Some(5),
+                },
+                deadline: Duration::from_secs(96),
+                pin_cpu: None,
+            },
+        ];
+        for spec in specs {
+            let argv = std::iter::once("doorslam".to_string())
+                .chain(PEER_SUBCOMMAND[1..].iter().map(|s| s.to_string()))
+                .chain(spec.to_args());
+            let BenchCommand::IpcPeer(args) = Cli::try_parse_from(argv).unwrap().command else {
+                panic!("not the peer subcommand");
+            };
+            assert_eq!(args.spec().unwrap(), spec);
+        }
+    }
 }

@@ -2,8 +2,9 @@
 
 use std::path::PathBuf;
 
-use anyhow::Result;
-use clap::{Args, Subcommand};
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand, ValueEnum};
+use doorslam_hil::experiments::pcm_sweep::{self, Cell, Method, SweepConfig, SweepReport};
 use doorslam_hil::posegraph_sim::{simulate, write_dataset, SimConfig};
 
 #[derive(Debug, Args)]
@@ -20,7 +21,7 @@ pub enum SimCommand {
     Graph(GraphArgs),
     /// PCM threshold sweep on simulated teams (paper Fig. 5/6): outliers and inliers
     /// rejected and ATE after PGO, for PCM alone, PCM + re-admission, and PCM + GNC.
-    PcmSweep(crate::bench::pcm_sweep::SweepArgs),
+    PcmSweep(SweepArgs),
     /// Synthetic stereo world: N drones flying through a textured town; writes one
     /// KITTI-layout sequence per robot with ground truth, calibration and a rendezvous
     /// event log.
@@ -68,7 +69,7 @@ pub struct GraphArgs {
 
 pub fn run(args: SimArgs) -> Result<()> {
     match args.command {
-        SimCommand::PcmSweep(a) => crate::bench::pcm_sweep::run(a)?,
+        SimCommand::PcmSweep(a) => run_sweep(a)?,
         SimCommand::World(a) => run_world(a)?,
         SimCommand::Graph(a) => {
             let config = a.team.config(a.seed);
@@ -88,6 +89,129 @@ pub fn run(args: SimArgs) -> Result<()> {
         }
     }
     Ok(())
+}
+
+#[derive(Debug, Args)]
+pub struct SweepArgs {
+    #[arg(long, default_value_t = 100)]
+    pub runs: usize,
+    #[command(flatten)]
+    pub team: TeamArgs,
+    /// PCM thresholds (probabilities).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "0.01,0.05,0.1,0.25,0.5,0.75,0.9,0.99"
+    )]
+    pub thresholds: Vec<f64>,
+    /// Methods run at every threshold, in this order (the baselines always run, once).
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "pcm,pcm+readmit,pcm+gnc"
+    )]
+    pub methods: Vec<SweepMethod>,
+    #[arg(long, default_value_t = 1)]
+    pub first_seed: u64,
+    /// Write an SVG plot of the rejection rates and ATE here.
+    #[arg(long)]
+    pub svg: Option<PathBuf>,
+    /// Print one JSON object instead of the Markdown table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// The swept methods of [`Method`] (the ones that use PCM), as `--methods` spells them.
+/// (No doc comments on the variants: clap would switch `--help` to its long layout.)
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum SweepMethod {
+    #[value(name = "pcm")]
+    Pcm,
+    #[value(name = "pcm+readmit")]
+    PcmReadmit,
+    #[value(name = "pcm+gnc")]
+    PcmGnc,
+}
+
+impl From<SweepMethod> for Method {
+    fn from(m: SweepMethod) -> Self {
+        match m {
+            SweepMethod::Pcm => Method::Pcm,
+            SweepMethod::PcmReadmit => Method::PcmReadmit,
+            SweepMethod::PcmGnc => Method::PcmGnc,
+        }
+    }
+}
+
+/// `sim pcm-sweep`: runs the sweep, prints the table (or JSON), writes the SVG.
+fn run_sweep(args: SweepArgs) -> Result<()> {
+    for p in &args.thresholds {
+        if !(*p > 0.0 && *p < 1.0) {
+            bail!("--thresholds: {p} is not a probability strictly between 0 and 1");
+        }
+    }
+    anyhow::ensure!(args.runs > 0, "--runs must be at least 1");
+    let config = SweepConfig {
+        team: args.team.config(args.first_seed),
+        runs: args.runs,
+        thresholds: args.thresholds.clone(),
+        methods: args.methods.iter().map(|m| Method::from(*m)).collect(),
+    };
+    let start = std::time::Instant::now();
+    let report = pcm_sweep::run(&config, &mut |done, total| {
+        if done % 10 == 0 || done == total {
+            eprintln!(
+                "pcm-sweep: {done}/{total} runs, {:.1} s",
+                start.elapsed().as_secs_f64()
+            );
+        }
+    })?;
+    if let Some(path) = &args.svg {
+        std::fs::write(path, report.svg())
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
+    if args.json {
+        println!("{}", sweep_json(&report, &args.team));
+    } else {
+        print!("{}", report.table());
+    }
+    Ok(())
+}
+
+/// The `--json` object: the team, the baselines by name, one object per threshold with a
+/// member per method.
+fn sweep_json(report: &SweepReport, team: &TeamArgs) -> serde_json::Value {
+    let row = |c: &Cell| {
+        serde_json::json!({
+            "outliers_rejected_pct": c.outliers_rejected.mean(), "outliers_rejected_std": c.outliers_rejected.std(),
+            "inliers_rejected_pct": c.inliers_rejected.mean(), "inliers_rejected_std": c.inliers_rejected.std(),
+            "ate_m": c.ate.mean(), "ate_std": c.ate.std(), "robots_connected": c.robots.mean(),
+        })
+    };
+    let per: Vec<serde_json::Value> = report
+        .thresholds
+        .iter()
+        .map(|t| {
+            let mut m = serde_json::Map::new();
+            m.insert("threshold".into(), t.threshold.into());
+            for (method, c) in &t.methods {
+                m.insert(method.name().into(), row(c));
+            }
+            serde_json::Value::Object(m)
+        })
+        .collect();
+    let mut v = serde_json::Map::new();
+    v.insert("runs".into(), report.config.runs.into());
+    v.insert("robots".into(), team.robots.into());
+    v.insert("poses".into(), team.poses.into());
+    v.insert("outliers".into(), team.outliers.into());
+    v.insert("correlated_groups".into(), team.correlated_groups.into());
+    for (method, c) in &report.baselines {
+        v.insert(method.name().into(), row(c));
+    }
+    v.insert("thresholds".into(), per.into());
+    serde_json::Value::Object(v)
 }
 
 #[derive(Debug, Args)]
@@ -120,7 +244,6 @@ pub struct WorldArgs {
 
 /// `sim world`: plans the team, then renders and writes every robot's sequence.
 fn run_world(a: WorldArgs) -> Result<()> {
-    use anyhow::Context;
     use doorslam_hil::flights::{
         camera_for_resolution, simulate_team, write_team, ClosureKind, FlightConfig,
     };
@@ -180,4 +303,22 @@ fn run_world(a: WorldArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sweep_methods_are_spelled_as_in_the_reports() {
+        let swept: Vec<Method> = SweepMethod::value_variants()
+            .iter()
+            .map(|m| Method::from(*m))
+            .collect();
+        assert_eq!(swept, Method::PCM);
+        for m in SweepMethod::value_variants() {
+            let name = m.to_possible_value().unwrap().get_name().to_string();
+            assert_eq!(name, Method::from(*m).name());
+        }
+    }
 }

@@ -6,12 +6,11 @@ use std::io;
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
 use std::time::Duration;
 
-use anyhow::{Context, Result};
-
 use super::{
     inherited_fd, nonblocking_sent, wait_readable, Delivered, PeerEndpoint, Phase, Publish, Receive,
 };
-use crate::bench::measure::{mono_ns, Mapping};
+use crate::error::{BenchError, Result};
+use crate::measure::{mono_ns, Mapping};
 
 const PHASE_BITS: u32 = 3;
 
@@ -25,7 +24,7 @@ impl EventfdPublisher {
         // SAFETY: plain syscall; the result is checked before use.
         let raw = unsafe { libc::eventfd(0, libc::EFD_NONBLOCK) };
         if raw < 0 {
-            return Err(io::Error::last_os_error()).context("eventfd");
+            return Err(BenchError::io("eventfd")(io::Error::last_os_error()));
         }
         // SAFETY: `raw` is a fresh descriptor that nothing else owns.
         let fd = unsafe { OwnedFd::from_raw_fd(raw) };

@@ -1,9 +1,11 @@
-//! What `doorslam bench ipc` reports: the machine, the method, one row per transport
-//! and resolution, and the targets checked against the rows.
+//! What the benchmark reports: the machine, the method, one row per transport and
+//! resolution, and the targets checked against the rows.
 
 use std::fmt::Write as _;
 
 use serde::{Deserialize, Serialize};
+
+use crate::Transport;
 
 /// The machine the figures come from (they mean little without it).
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -22,7 +24,7 @@ fn read_trimmed(path: &str) -> String {
         .unwrap_or_default()
 }
 
-pub fn loadavg() -> Option<f64> {
+pub(crate) fn loadavg() -> Option<f64> {
     read_trimmed("/proc/loadavg")
         .split_whitespace()
         .next()?
@@ -31,6 +33,7 @@ pub fn loadavg() -> Option<f64> {
 }
 
 impl Machine {
+    /// This machine, now: CPU model and count, kernel, load average.
     pub fn probe() -> Self {
         let cpuinfo = read_trimmed("/proc/cpuinfo");
         let cpu_model = cpuinfo
@@ -64,9 +67,10 @@ pub struct Settings {
 }
 
 /// One transport at one resolution.
-#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ResultRow {
-    pub transport: String,
+    pub transport: Transport,
+    /// `WIDTHxHEIGHT` of each image of the pair.
     pub resolution: String,
     /// Publish -> receive latency, paced sends, receiver idle in between.
     pub p50_us: Option<f64>,
@@ -98,7 +102,39 @@ pub struct ResultRow {
     pub p99_us_rounds: Vec<Option<f64>>,
     /// `p99_us_30hz` of every round.
     pub p99_us_30hz_rounds: Vec<Option<f64>>,
+    /// Why the case failed (every round failed: the first failure); figures are then
+    /// empty.
     pub error: Option<String>,
+}
+
+impl ResultRow {
+    /// A row with no figures yet.
+    pub fn new(transport: Transport, resolution: String) -> Self {
+        Self {
+            transport,
+            resolution,
+            p50_us: None,
+            p99_us: None,
+            pairs_per_s: None,
+            zero_copy: None,
+            samples: 0,
+            drops: 0,
+            cpu_us_per_frame_30hz: None,
+            cpu_percent_30hz: None,
+            copy_us_per_frame_30hz: None,
+            transport_cpu_percent_30hz: None,
+            p50_us_30hz: None,
+            p99_us_30hz: None,
+            sent: 0,
+            received: 0,
+            checksum_errors: 0,
+            payload_mapping: None,
+            rounds: 0,
+            p99_us_rounds: Vec::new(),
+            p99_us_30hz_rounds: Vec::new(),
+            error: None,
+        }
+    }
 }
 
 /// One of the targets, checked (reported, never asserted).
@@ -111,6 +147,7 @@ pub struct TargetCheck {
     pub met: Option<bool>,
 }
 
+/// Everything one run found; serialized, the `--json` form.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct IpcReport {
     pub machine: Machine,
@@ -119,7 +156,7 @@ pub struct IpcReport {
     pub targets: Vec<TargetCheck>,
 }
 
-fn row<'a>(rows: &'a [ResultRow], transport: &str, res: &str) -> Option<&'a ResultRow> {
+fn row<'a>(rows: &'a [ResultRow], transport: Transport, res: &str) -> Option<&'a ResultRow> {
     rows.iter()
         .find(|r| r.transport == transport && r.resolution == res)
 }
@@ -127,7 +164,7 @@ fn row<'a>(rows: &'a [ResultRow], transport: &str, res: &str) -> Option<&'a Resu
 /// The targets: iceoryx2 p99 < 50 µs awake; event-driven p99 within 2x the
 /// wake-up floor; >= 1,000 pairs/s; < 1 % of a core at 30 Hz (event-driven: the
 /// polling subscriber spins by design).
-pub fn check_targets(rows: &[ResultRow], resolutions: &[String]) -> Vec<TargetCheck> {
+pub(crate) fn check_targets(rows: &[ResultRow], resolutions: &[String]) -> Vec<TargetCheck> {
     let mut out = Vec::new();
     let mut push = |target: &str, res: &str, value: Option<f64>, limit: f64, below: bool| {
         let met = value.map(|v| if below { v < limit } else { v >= limit });
@@ -140,10 +177,10 @@ pub fn check_targets(rows: &[ResultRow], resolutions: &[String]) -> Vec<TargetCh
         });
     };
     for res in resolutions {
-        let poll = row(rows, "iceoryx2_poll", res);
-        let event = row(rows, "iceoryx2_event", res);
-        let floor = row(rows, "eventfd_floor", res);
-        let dgram = row(rows, "unix_dgram_floor", res);
+        let poll = row(rows, Transport::Iceoryx2Poll, res);
+        let event = row(rows, Transport::Iceoryx2Event, res);
+        let floor = row(rows, Transport::EventfdFloor, res);
+        let dgram = row(rows, Transport::UnixDgramFloor, res);
         push(
             "iceoryx2_poll p99_us < 50 (subscriber awake)",
             res,
@@ -155,7 +192,7 @@ pub fn check_targets(rows: &[ResultRow], resolutions: &[String]) -> Vec<TargetCh
         // burst of load in one round cannot pass for a property of one transport.
         let ratio = |floor: Option<&ResultRow>, f: fn(&ResultRow) -> &Vec<Option<f64>>| {
             let (e, fl) = (f(event?), f(floor?));
-            super::measure::median(e.iter().zip(fl).map(|(e, fl)| match (e, fl) {
+            crate::measure::median(e.iter().zip(fl).map(|(e, fl)| match (e, fl) {
                 (Some(e), Some(fl)) if *fl > 0.0 => Some(e / fl),
                 _ => None,
             }))
@@ -211,7 +248,7 @@ fn num(v: Option<f64>, decimals: usize) -> String {
 }
 
 impl IpcReport {
-    /// The human table.
+    /// The human table (what `doorslam bench ipc` prints without `--json`).
     pub fn table(&self) -> String {
         let m = &self.machine;
         let mut s = String::new();

@@ -17,9 +17,6 @@ fn clock_ns(clock: libc::clockid_t) -> u64 {
     ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
 }
 
-/// CLOCK_MONOTONIC in nanoseconds: unlike `std::time::Instant`, its value means the same
-/// in every process of the machine, so a stamp written by one process can be subtracted
-/// from a reading taken in another.
 /// Restricts the calling process (its threads created from now on, and this one) to one
 /// CPU, so publisher and subscriber cannot be placed on the same core by the scheduler.
 pub fn pin_to_cpu(cpu: usize) -> io::Result<()> {
@@ -49,6 +46,9 @@ pub fn median(values: impl IntoIterator<Item = Option<f64>>) -> Option<f64> {
     (!v.is_empty()).then(|| v[(v.len() - 1) / 2])
 }
 
+/// CLOCK_MONOTONIC in nanoseconds: unlike `std::time::Instant`, its value means the same
+/// in every process of the machine, so a stamp written by one process can be subtracted
+/// from a reading taken in another.
 pub fn mono_ns() -> u64 {
     clock_ns(libc::CLOCK_MONOTONIC)
 }

@@ -1,12 +1,18 @@
-//! The peer process as seen from the publisher: spawned from this same binary, read
-//! line by line with timeouts, and always killed and reaped, on every path.
+//! The peer process as seen from the publisher: spawned from the caller's binary
+//! ([`PeerCommand`]), read line by line with timeouts, and always killed and reaped, on
+//! every path.
 
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError, TryRecvError};
 use std::time::{Duration, Instant};
 
-use anyhow::{bail, Context, Result};
+use crate::error::{BenchError, Result};
+use crate::PeerCommand;
+
+fn failed(what: impl Into<String>) -> BenchError {
+    BenchError::Peer(what.into())
+}
 
 /// A running peer. Dropping it kills the process if it is still running and waits for
 /// it, so no error path leaves a subscriber behind.
@@ -16,20 +22,24 @@ pub struct PeerProcess {
 }
 
 impl PeerProcess {
-    /// Starts `<this binary> <args>` with stdout piped to us and stderr shared.
-    pub fn spawn(args: &[String]) -> Result<Self> {
-        let exe = std::env::current_exe().context("locate the doorslam binary")?;
-        let mut child = Command::new(&exe)
+    /// Starts `<command> <args>` with stdout piped to us and stderr shared.
+    pub fn spawn(command: &PeerCommand, args: &[String]) -> Result<Self> {
+        let exe = &command.program;
+        let mut child = Command::new(exe)
+            .args(&command.args)
             .args(args)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
-            .with_context(|| format!("start the peer process {}", exe.display()))?;
+            .map_err(BenchError::io(format!(
+                "start the peer process {}",
+                exe.display()
+            )))?;
         let Some(stdout) = child.stdout.take() else {
             let _ = child.kill();
             let _ = child.wait();
-            bail!("peer process has no stdout");
+            return Err(failed("peer process has no stdout"));
         };
         let (tx, lines) = mpsc::channel();
         // A reader thread turns the blocking pipe into a channel we can wait on with a
@@ -57,7 +67,9 @@ impl PeerProcess {
     pub fn expect(&mut self, prefix: &str, timeout: Duration) -> Result<String> {
         match self.wait_for(prefix, timeout)? {
             Some(rest) => Ok(rest),
-            None => bail!("peer process did not say {prefix:?} within {timeout:?}"),
+            None => Err(failed(format!(
+                "peer process did not say {prefix:?} within {timeout:?}"
+            ))),
         }
     }
 
@@ -75,7 +87,10 @@ impl PeerProcess {
                 }
                 Err(RecvTimeoutError::Timeout) => return Ok(None),
                 Err(RecvTimeoutError::Disconnected) => {
-                    bail!("{} before saying {prefix:?}", self.exited())
+                    return Err(failed(format!(
+                        "{} before saying {prefix:?}",
+                        self.exited()
+                    )))
                 }
             }
         }
@@ -89,7 +104,10 @@ impl PeerProcess {
                 Ok(_) => {}
                 Err(TryRecvError::Empty) => return Ok(false),
                 Err(TryRecvError::Disconnected) => {
-                    bail!("{} before saying {prefix:?}", self.exited())
+                    return Err(failed(format!(
+                        "{} before saying {prefix:?}",
+                        self.exited()
+                    )))
                 }
             }
         }
@@ -99,15 +117,21 @@ impl PeerProcess {
     pub fn finish(mut self, timeout: Duration) -> Result<()> {
         let deadline = Instant::now() + timeout;
         while Instant::now() < deadline {
-            if let Some(status) = self.child.try_wait()? {
+            let exited = self
+                .child
+                .try_wait()
+                .map_err(BenchError::io("wait for the peer process"))?;
+            if let Some(status) = exited {
                 if status.success() {
                     return Ok(());
                 }
-                bail!("peer process failed ({status})");
+                return Err(failed(format!("peer process failed ({status})")));
             }
             std::thread::sleep(Duration::from_millis(10));
         }
-        bail!("peer process did not exit within {timeout:?}; killed")
+        Err(failed(format!(
+            "peer process did not exit within {timeout:?}; killed"
+        )))
     }
 }
 

@@ -6,7 +6,6 @@
 
 use std::time::Duration;
 
-use anyhow::{anyhow, bail, Context, Result};
 use doorslam_team::zenoh::handlers::FifoChannelHandler;
 use doorslam_team::zenoh::pubsub::{Publisher, Subscriber};
 use doorslam_team::zenoh::sample::Sample;
@@ -18,7 +17,12 @@ use doorslam_team::zenoh::{Session, Wait};
 use doorslam_team::{open_peer, LinkConfig};
 
 use super::{Delivered, PeerEndpoint, Phase, Publish, Receive, WireHeader, WIRE_HEADER_LEN};
-use crate::bench::measure::{mapping_of, mono_ns, thread_cpu_ns, Mapping};
+use crate::error::{BenchError, Result};
+use crate::measure::{mapping_of, mono_ns, thread_cpu_ns, Mapping};
+
+fn failed(what: impl Into<String>) -> BenchError {
+    BenchError::Transport(what.into())
+}
 
 /// Pairs the SHM pool holds: enough to keep a pipeline of in-flight frames, small
 /// enough that a stalled subscriber makes the publisher wait rather than grow memory.
@@ -31,8 +35,12 @@ fn key(tag: &str) -> String {
 /// A free loopback port for the publisher's listener (tiny race until Zenoh binds it;
 /// Zenoh does not report loopback locators, so port 0 could not be passed on).
 fn free_port() -> Result<u16> {
-    let probe = std::net::TcpListener::bind("127.0.0.1:0").context("probe a free tcp port")?;
-    Ok(probe.local_addr()?.port())
+    let probe = std::net::TcpListener::bind("127.0.0.1:0")
+        .map_err(BenchError::io("probe a free tcp port"))?;
+    let addr = probe
+        .local_addr()
+        .map_err(BenchError::io("probe a free tcp port"))?;
+    Ok(addr.port())
 }
 
 pub struct ZenohPublisher {
@@ -57,11 +65,14 @@ impl ZenohPublisher {
         let publisher = session
             .declare_publisher(key.clone())
             .wait()
-            .map_err(|e| anyhow!("zenoh publisher on {key}: {e}"))?;
+            .map_err(BenchError::zenoh(format!("zenoh publisher on {key}")))?;
         let pair = WIRE_HEADER_LEN + 2 * width as usize * height as usize;
         let backend = PosixShmProviderBackend::builder(POOL_PAIRS * pair)
             .wait()
-            .map_err(|e| anyhow!("zenoh shm pool of {} bytes: {e}", POOL_PAIRS * pair))?;
+            .map_err(BenchError::zenoh(format!(
+                "zenoh shm pool of {} bytes",
+                POOL_PAIRS * pair
+            )))?;
         let provider = ShmProviderBuilder::backend(backend).wait();
         let me = Self {
             publisher,
@@ -97,7 +108,7 @@ impl Publish for ZenohPublisher {
             self.publisher
                 .put(bytes)
                 .wait()
-                .map_err(|e| anyhow!("zenoh put: {e}"))?;
+                .map_err(BenchError::zenoh("zenoh put"))?;
             return Ok(true);
         }
         let n = left.len();
@@ -115,7 +126,7 @@ impl Publish for ZenohPublisher {
             }
             // Every buffer is still held by the subscriber: no room right now.
             Err(ZLayoutAllocError::Alloc(ZAllocError::OutOfMemory)) => return Ok(false),
-            Err(e) => bail!("zenoh shm alloc of {len} bytes: {e}"),
+            Err(e) => return Err(BenchError::zenoh(format!("zenoh shm alloc of {len} bytes"))(e)),
         };
         let copy_start = (phase == Phase::Paced).then(thread_cpu_ns);
         // The one copy: source images into the SHM buffer.
@@ -132,7 +143,7 @@ impl Publish for ZenohPublisher {
         self.publisher
             .put(buf)
             .wait()
-            .map_err(|e| anyhow!("zenoh put: {e}"))?;
+            .map_err(BenchError::zenoh("zenoh put"))?;
         Ok(true)
     }
 
@@ -162,7 +173,7 @@ pub struct ZenohReceiver {
 impl ZenohReceiver {
     pub fn open(endpoint: &PeerEndpoint) -> Result<Self> {
         let Some(connect) = endpoint.connect.clone() else {
-            bail!("zenoh peer: no endpoint to connect to");
+            return Err(failed("zenoh peer: no endpoint to connect to"));
         };
         let session = open_peer(&LinkConfig {
             listen: vec![],
@@ -172,7 +183,10 @@ impl ZenohReceiver {
         let subscriber = session
             .declare_subscriber(endpoint.name.clone())
             .wait()
-            .map_err(|e| anyhow!("zenoh subscriber on {}: {e}", endpoint.name))?;
+            .map_err(BenchError::zenoh(format!(
+                "zenoh subscriber on {}",
+                endpoint.name
+            )))?;
         Ok(Self {
             subscriber,
             _session: session,
@@ -190,11 +204,11 @@ fn deliver(sample: &Sample, on_frame: &mut dyn FnMut(&Delivered<'_>)) -> Result<
         None => (payload.to_bytes(), false),
     };
     let Some(header) = WireHeader::decode(&bytes) else {
-        bail!("zenoh: malformed frame header");
+        return Err(failed("zenoh: malformed frame header"));
     };
     let n = header.pixels();
     let Some(images) = bytes.get(WIRE_HEADER_LEN..WIRE_HEADER_LEN + 2 * n) else {
-        bail!("zenoh: frame shorter than its header says");
+        return Err(failed("zenoh: frame shorter than its header says"));
     };
     on_frame(&Delivered {
         phase: header.phase,
@@ -216,7 +230,7 @@ impl Receive for ZenohReceiver {
         let first = self
             .subscriber
             .recv_timeout(timeout)
-            .map_err(|e| anyhow!("zenoh receive: {e}"))?;
+            .map_err(BenchError::zenoh("zenoh receive"))?;
         let Some(sample) = first else {
             return Ok(());
         };
@@ -224,7 +238,7 @@ impl Receive for ZenohReceiver {
         while let Some(sample) = self
             .subscriber
             .try_recv()
-            .map_err(|e| anyhow!("zenoh receive: {e}"))?
+            .map_err(BenchError::zenoh("zenoh receive"))?
         {
             deliver(&sample, on_frame)?;
         }

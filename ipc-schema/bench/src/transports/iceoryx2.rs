@@ -6,12 +6,12 @@
 use std::hint::spin_loop;
 use std::time::{Duration, Instant};
 
-use anyhow::{anyhow, Context, Result};
 use doorslam_ipc::iceoryx2::prelude::*;
 use doorslam_ipc::{create_node, FrameHeader, IpcError, Receiver, Sender, StereoFrame, Topic};
 
 use super::{Delivered, PeerEndpoint, Phase, Publish, Receive};
-use crate::bench::measure::{mapping_of_range, mono_ns, thread_cpu_ns, Mapping};
+use crate::error::{BenchError, Result};
+use crate::measure::{mapping_of_range, mono_ns, thread_cpu_ns, Mapping};
 
 pub struct IceoryxPublisher {
     sender: Sender<StereoFrame>,
@@ -86,7 +86,7 @@ impl Publish for IceoryxPublisher {
             Ok(()) => Ok(true),
             // Every sample is in flight: the transport has no room right now.
             Err(IpcError::NoRoom { .. }) => Ok(false),
-            Err(e) => Err(anyhow!(e)),
+            Err(e) => Err(BenchError::Ipc(e)),
         }
     }
 
@@ -128,8 +128,8 @@ impl IceoryxReceiver {
             return Ok(());
         };
         // The images are read where the publisher wrote them: slices into the sample.
-        let left = frame.left_image().context("received frame")?;
-        let right = frame.right_image().context("received frame")?;
+        let left = frame.left_image().map_err(BenchError::Frame)?;
+        let right = frame.right_image().map_err(BenchError::Frame)?;
         on_frame(&Delivered {
             phase,
             stamp_ns: Some(h.stamp_ns),

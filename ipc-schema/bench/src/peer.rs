@@ -1,5 +1,6 @@
-//! The subscriber process of `doorslam bench ipc`: a real second process (the doorslam
-//! binary re-executed) that receives pairs, reads them in place, and reports.
+//! The subscriber process of the benchmark: a real second process (the caller's binary
+//! re-executed, see [`crate::PeerCommand`]) that receives pairs, reads them in place, and
+//! reports.
 //!
 //! It speaks to the publisher on its stdout, one line each: `ready` once subscribed,
 //! `warm` once warm-up frames flow (over SHM, where the transport has it), and
@@ -7,14 +8,14 @@
 
 use std::time::{Duration, Instant};
 
-use anyhow::Result;
 use serde::{Deserialize, Serialize};
 
-use super::measure::{checksum, cpu_ns, mapping_of, test_image, LatencySummary, Mapping, Maps};
-use super::transports::{open_receiver, Delivered, PeerEndpoint, Phase, Transport};
+use crate::error::{BenchError, Result};
+use crate::measure::{checksum, cpu_ns, mapping_of, test_image, LatencySummary, Mapping, Maps};
+use crate::transports::{open_receiver, Delivered, PeerEndpoint, Phase, Transport};
 
-/// What the peer needs to know, from its command line.
-#[derive(Debug, Clone)]
+/// What the peer needs to know, from its command line ([`PeerSpec::to_args`]).
+#[derive(Debug, Clone, PartialEq)]
 pub struct PeerSpec {
     pub transport: Transport,
     pub width: u32,
@@ -24,6 +25,38 @@ pub struct PeerSpec {
     pub deadline: Duration,
     /// Pin this process to one CPU.
     pub pin_cpu: Option<usize>,
+}
+
+impl PeerSpec {
+    /// The peer's command line, after [`crate::PeerCommand`]'s own arguments: `--transport
+    /// NAME --width W --height H --name NAME --deadline-s SECONDS`, then `--connect
+    /// ENDPOINT`, `--fd FD` and `--pin-cpu CPU` where set. The caller's subcommand parses
+    /// these flags back into a [`PeerSpec`] and calls [`run_peer`].
+    pub fn to_args(&self) -> Vec<String> {
+        let mut args: Vec<String> = vec![
+            "--transport".into(),
+            self.transport.name().into(),
+            "--width".into(),
+            self.width.to_string(),
+            "--height".into(),
+            self.height.to_string(),
+            "--name".into(),
+            self.endpoint.name.clone(),
+            "--deadline-s".into(),
+            // Shortest round-trip spelling: parsed back, it is the same duration.
+            self.deadline.as_secs_f64().to_string(),
+        ];
+        if let Some(connect) = &self.endpoint.connect {
+            args.extend(["--connect".into(), connect.clone()]);
+        }
+        if let Some(fd) = self.endpoint.fd {
+            args.extend(["--fd".into(), fd.to_string()]);
+        }
+        if let Some(cpu) = self.pin_cpu {
+            args.extend(["--pin-cpu".into(), cpu.to_string()]);
+        }
+        args
+    }
 }
 
 /// One phase as the peer saw it.
@@ -195,11 +228,22 @@ impl Stats {
     }
 }
 
-/// Runs the peer until the end marker or the deadline, then prints its report.
-pub fn run_peer(spec: &PeerSpec) -> Result<()> {
+/// Runs the peer until the end marker or the deadline, then prints its report. Its
+/// stdout is the protocol with the publisher (`ready`, `warm`, `report <json>`), so
+/// nothing else may print there.
+pub fn run_peer(spec: &PeerSpec) -> Result<(), BenchError> {
+    if spec.deadline.is_zero() {
+        return Err(BenchError::InvalidOption {
+            option: "deadline",
+            reason: "must be a positive duration",
+        });
+    }
     if let Some(cpu) = spec.pin_cpu {
-        super::measure::pin_to_cpu(cpu)
-            .map_err(|e| anyhow::anyhow!("pin the subscriber to CPU {cpu}: {e}"))?;
+        crate::measure::pin_to_cpu(cpu).map_err(|source| BenchError::PinCpu {
+            process: "subscriber",
+            cpu,
+            source,
+        })?;
     }
     let mut receiver = open_receiver(spec.transport, &spec.endpoint)?;
     let mut stats = Stats::new(spec);
@@ -209,6 +253,8 @@ pub fn run_peer(spec: &PeerSpec) -> Result<()> {
         receiver.receive(Duration::from_millis(50), &mut |d| stats.on_frame(d))?;
     }
     let report = stats.finish();
-    println!("report {}", serde_json::to_string(&report)?);
+    let json =
+        serde_json::to_string(&report).map_err(|e| BenchError::PeerReport("serialize", e))?;
+    println!("report {json}");
     Ok(())
 }

@@ -8,11 +8,15 @@ use std::os::linux::net::SocketAddrExt;
 use std::os::unix::net::{SocketAddr, UnixListener, UnixStream};
 use std::time::{Duration, Instant};
 
-use anyhow::{bail, Context, Result};
 use doorslam_ipc::MAX_FRAME_PIXELS;
 
 use super::{Delivered, PeerEndpoint, Phase, Publish, Receive, WireHeader, WIRE_HEADER_LEN};
-use crate::bench::measure::{mapping_of, mono_ns, Mapping};
+use crate::error::{BenchError, Result};
+use crate::measure::{mapping_of, mono_ns, Mapping};
+
+fn failed(what: impl Into<String>) -> BenchError {
+    BenchError::Transport(what.into())
+}
 
 fn socket_name(tag: &str) -> String {
     format!("doorslam-bench-{tag}")
@@ -20,7 +24,7 @@ fn socket_name(tag: &str) -> String {
 
 fn abstract_addr(name: &str) -> Result<SocketAddr> {
     SocketAddr::from_abstract_name(name.as_bytes())
-        .with_context(|| format!("abstract socket name {name:?}"))
+        .map_err(BenchError::io(format!("abstract socket name {name:?}")))
 }
 
 pub struct SocketPublisher {
@@ -34,10 +38,13 @@ pub struct SocketPublisher {
 impl SocketPublisher {
     pub fn open(tag: &str, width: u32, height: u32) -> Result<(Box<dyn Publish>, PeerEndpoint)> {
         let name = socket_name(tag);
-        let listener = UnixListener::bind_addr(&abstract_addr(&name)?)
-            .with_context(|| format!("listen on abstract socket {name:?}"))?;
+        let listener = UnixListener::bind_addr(&abstract_addr(&name)?).map_err(BenchError::io(
+            format!("listen on abstract socket {name:?}"),
+        ))?;
         // Non-blocking accept so a peer that never connects cannot hang the run.
-        listener.set_nonblocking(true)?;
+        listener
+            .set_nonblocking(true)
+            .map_err(BenchError::io("unix socket: non-blocking accept"))?;
         let me = Self {
             listener,
             stream: None,
@@ -71,24 +78,26 @@ impl Publish for SocketPublisher {
         loop {
             match self.listener.accept() {
                 Ok((stream, _)) => {
-                    stream.set_nonblocking(false)?;
+                    stream
+                        .set_nonblocking(false)
+                        .map_err(BenchError::io("unix socket: blocking stream"))?;
                     self.stream = Some(stream);
                     return Ok(());
                 }
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
                     if Instant::now() > deadline {
-                        bail!("unix socket: the peer did not connect in time");
+                        return Err(failed("unix socket: the peer did not connect in time"));
                     }
                     std::thread::sleep(Duration::from_millis(2));
                 }
-                Err(e) => return Err(e).context("unix socket accept"),
+                Err(e) => return Err(BenchError::io("unix socket accept")(e)),
             }
         }
     }
 
     fn publish(&mut self, phase: Phase, seq: u64, left: &[u8], right: &[u8]) -> Result<bool> {
         let Some(stream) = self.stream.as_mut() else {
-            bail!("unix socket: publish before the peer connected");
+            return Err(failed("unix socket: publish before the peer connected"));
         };
         let (width, height, l, r) = if phase == Phase::End {
             (0, 0, &[][..], &[][..])
@@ -108,7 +117,7 @@ impl Publish for SocketPublisher {
         .encode();
         // The write is the send: the kernel copies the bytes into the socket buffer.
         let mut bufs = [IoSlice::new(&header), IoSlice::new(l), IoSlice::new(r)];
-        write_all_vectored(stream, &mut bufs).context("unix socket write")?;
+        write_all_vectored(stream, &mut bufs).map_err(BenchError::io("unix socket write"))?;
         Ok(true)
     }
 
@@ -124,10 +133,13 @@ pub struct SocketReceiver {
 
 impl SocketReceiver {
     pub fn open(endpoint: &PeerEndpoint) -> Result<Self> {
-        let stream = UnixStream::connect_addr(&abstract_addr(&endpoint.name)?)
-            .with_context(|| format!("connect to abstract socket {:?}", endpoint.name))?;
+        let stream = UnixStream::connect_addr(&abstract_addr(&endpoint.name)?).map_err(
+            BenchError::io(format!("connect to abstract socket {:?}", endpoint.name)),
+        )?;
         // A publisher that dies mid-frame must not hang the peer forever.
-        stream.set_read_timeout(Some(Duration::from_secs(10)))?;
+        stream
+            .set_read_timeout(Some(Duration::from_secs(10)))
+            .map_err(BenchError::io("unix socket: read timeout"))?;
         Ok(Self {
             stream,
             buf: vec![0; 2 * MAX_FRAME_PIXELS],
@@ -147,18 +159,20 @@ impl Receive for SocketReceiver {
         let mut raw = [0u8; WIRE_HEADER_LEN];
         self.stream
             .read_exact(&mut raw)
-            .context("unix socket read")?;
+            .map_err(BenchError::io("unix socket read"))?;
         let Some(header) = WireHeader::decode(&raw) else {
-            bail!("unix socket: malformed frame header");
+            return Err(failed("unix socket: malformed frame header"));
         };
         let n = header.pixels();
         if 2 * n > self.buf.len() {
-            bail!("unix socket: frame of {n} pixels exceeds the maximum");
+            return Err(failed(format!(
+                "unix socket: frame of {n} pixels exceeds the maximum"
+            )));
         }
         // The copy out of the kernel: the payload lands in this process's private buffer.
         self.stream
             .read_exact(&mut self.buf[..2 * n])
-            .context("unix socket read")?;
+            .map_err(BenchError::io("unix socket read"))?;
         let recv_ns = mono_ns();
         on_frame(&Delivered {
             phase: header.phase,

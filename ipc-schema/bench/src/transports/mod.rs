@@ -1,5 +1,5 @@
-//! The transports under test, each as a publisher half (in the `doorslam bench ipc`
-//! process) and a receiver half (in the re-executed peer process).
+//! The transports under test, each as a publisher half (in the benchmarking process) and
+//! a receiver half (in the re-executed peer process).
 //!
 //! Every transport stamps CLOCK_MONOTONIC right before its send call and the receiver
 //! stamps it again as soon as the whole pair is readable; the difference is the latency.
@@ -12,10 +12,11 @@ mod zenoh_shm;
 
 use std::time::{Duration, Instant};
 
-use anyhow::Result;
 use serde::{Deserialize, Serialize};
 
-use super::measure::Mapping;
+use crate::error::Result;
+use crate::measure::Mapping;
+use crate::BenchError;
 
 /// What the peer should do with a frame. The publisher marks every frame with the
 /// phase it belongs to, so the peer needs no side channel to know where a phase starts.
@@ -46,26 +47,27 @@ impl Phase {
     }
 }
 
-/// The transports, in the order a run measures them.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+/// The transports, in the order a run measures them. Spelled by [`Transport::name`] in
+/// reports, in JSON (serde) and on the peer's command line ([`std::str::FromStr`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub enum Transport {
     /// iceoryx2 pub-sub, subscriber spinning on `receive()`.
-    #[value(name = "iceoryx2_poll")]
+    #[serde(rename = "iceoryx2_poll")]
     Iceoryx2Poll,
     /// iceoryx2 pub-sub plus an iceoryx2 event, subscriber blocked on the listener.
-    #[value(name = "iceoryx2_event")]
+    #[serde(rename = "iceoryx2_event")]
     Iceoryx2Event,
     /// eventfd wake-up between the two processes, no payload: the floor for the above.
-    #[value(name = "eventfd_floor")]
+    #[serde(rename = "eventfd_floor")]
     EventfdFloor,
     /// Unix datagram wake-up, no payload: the primitive iceoryx2's ipc events use.
-    #[value(name = "unix_dgram_floor")]
+    #[serde(rename = "unix_dgram_floor")]
     UnixDgramFloor,
     /// Zenoh peer sessions over tcp/127.0.0.1 with the payload in a Zenoh SHM buffer.
-    #[value(name = "zenoh_shm")]
+    #[serde(rename = "zenoh_shm")]
     ZenohShm,
     /// A Unix domain stream socket carrying the same bytes.
-    #[value(name = "unix_socket")]
+    #[serde(rename = "unix_socket")]
     UnixSocket,
 }
 
@@ -94,6 +96,42 @@ impl Transport {
     /// Whether the transport carries the images at all (the floors carry none).
     pub fn carries_payload(self) -> bool {
         !matches!(self, Transport::EventfdFloor | Transport::UnixDgramFloor)
+    }
+}
+
+impl std::fmt::Display for Transport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // `pad`, not `write_str`: the report's table aligns transports with `{:<16}`.
+        f.pad(self.name())
+    }
+}
+
+/// A name that is none of [`Transport::ALL`]'s.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct UnknownTransport(pub String);
+
+impl std::fmt::Display for UnknownTransport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let names: Vec<&str> = Transport::ALL.iter().map(|t| t.name()).collect();
+        write!(
+            f,
+            "unknown transport {:?} (one of {})",
+            self.0,
+            names.join(", ")
+        )
+    }
+}
+
+impl std::error::Error for UnknownTransport {}
+
+impl std::str::FromStr for Transport {
+    type Err = UnknownTransport;
+
+    fn from_str(s: &str) -> std::result::Result<Self, Self::Err> {
+        Transport::ALL
+            .into_iter()
+            .find(|t| t.name() == s)
+            .ok_or_else(|| UnknownTransport(s.to_string()))
     }
 }
 
@@ -193,18 +231,25 @@ pub(crate) fn nonblocking_sent(n: isize, len: usize, what: &str) -> Result<bool>
     if n < 0 && err.kind() == std::io::ErrorKind::WouldBlock {
         return Ok(false);
     }
-    Err(anyhow::anyhow!("{what}: {n} of {len} bytes sent: {err}"))
+    Err(BenchError::Io {
+        what: format!("{what}: {n} of {len} bytes sent"),
+        source: err,
+    })
 }
 
 /// The descriptor the publisher left open across exec for this peer (`--fd`), checked.
 pub(crate) fn inherited_fd(endpoint: &PeerEndpoint, what: &str) -> Result<std::os::fd::OwnedFd> {
     use std::os::fd::FromRawFd;
     let Some(raw) = endpoint.fd else {
-        anyhow::bail!("{what}: no inherited descriptor given");
+        return Err(BenchError::Transport(format!(
+            "{what}: no inherited descriptor given"
+        )));
     };
     // SAFETY: F_GETFD only queries the descriptor table.
     if raw < 0 || unsafe { libc::fcntl(raw, libc::F_GETFD) } < 0 {
-        anyhow::bail!("{what}: descriptor {raw} was not inherited");
+        return Err(BenchError::Transport(format!(
+            "{what}: descriptor {raw} was not inherited"
+        )));
     }
     // SAFETY: the descriptor is open (checked above) and this process owns its copy.
     Ok(unsafe { std::os::fd::OwnedFd::from_raw_fd(raw) })
@@ -277,12 +322,17 @@ mod tests {
     use super::*;
 
     #[test]
-    fn command_line_names_are_report_names() {
-        use clap::ValueEnum;
+    fn command_line_and_json_names_are_report_names() {
         for t in Transport::ALL {
-            let value = t.to_possible_value().unwrap();
-            assert_eq!(value.get_name(), t.name());
+            assert_eq!(t.name().parse::<Transport>(), Ok(t));
+            assert_eq!(t.to_string(), t.name());
+            assert_eq!(format!("{t:<17}|"), format!("{:<17}|", t.name()));
+            let json = serde_json::to_string(&t).unwrap();
+            assert_eq!(json, format!("\"{}\"", t.name()));
+            assert_eq!(serde_json::from_str::<Transport>(&json).unwrap(), t);
         }
+        let err = "iceoryx".parse::<Transport>().unwrap_err();
+        assert!(err.to_string().contains("\"iceoryx\""), "{err}");
     }
 
     #[test]

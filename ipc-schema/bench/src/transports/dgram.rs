@@ -7,12 +7,11 @@ use std::io;
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
 use std::time::Duration;
 
-use anyhow::{Context, Result};
-
 use super::{
     inherited_fd, nonblocking_sent, wait_readable, Delivered, PeerEndpoint, Phase, Publish, Receive,
 };
-use crate::bench::measure::{mono_ns, Mapping};
+use crate::error::{BenchError, Result};
+use crate::measure::{mono_ns, Mapping};
 
 pub struct DgramPublisher {
     ours: OwnedFd,
@@ -35,7 +34,9 @@ impl DgramPublisher {
             )
         };
         if rc != 0 {
-            return Err(io::Error::last_os_error()).context("socketpair(AF_UNIX, SOCK_DGRAM)");
+            return Err(BenchError::io("socketpair(AF_UNIX, SOCK_DGRAM)")(
+                io::Error::last_os_error(),
+            ));
         }
         // SAFETY: two fresh descriptors nothing else owns.
         let (ours, theirs) =

@@ -1,4 +1,4 @@
-//! `doorslam bench ipc`, the publisher side: for each resolution and transport, start a
+//! The publisher side (`doorslam bench ipc`): for each resolution and transport, start a
 //! peer process, warm up, then run three phases and combine both processes' findings.
 //!
 //! Phases of one case (each at most `seconds_per_case`):
@@ -7,15 +7,15 @@
 //! 2. throughput: pairs as fast as the transport accepts them;
 //! 3. 30 Hz: the camera rate, for the CPU time of both processes per pair.
 
+use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, Result};
-
-use super::child::PeerProcess;
-use super::measure::{cpu_ns, median, mono_ns, pin_to_cpu, test_image};
-use super::peer::PeerReport;
-use super::report::{check_targets, loadavg, IpcReport, Machine, ResultRow, Settings};
-use super::transports::{open_publisher, PeerEndpoint, Phase, Publish, Transport};
+use crate::child::PeerProcess;
+use crate::error::{BenchError, Result};
+use crate::measure::{cpu_ns, median, mono_ns, pin_to_cpu, test_image};
+use crate::peer::{PeerReport, PeerSpec};
+use crate::report::{check_targets, loadavg, IpcReport, Machine, ResultRow, Settings};
+use crate::transports::{open_publisher, Phase, Publish, Transport};
 
 /// Gap between latency pairs: long enough for the receiver to finish a 1280x720 pair
 /// and go idle, short enough for a thousand samples in two seconds.
@@ -29,21 +29,73 @@ const PEER_START: Duration = Duration::from_secs(30);
 const WARMUP_LIMIT: Duration = Duration::from_secs(30);
 const REPORT_LIMIT: Duration = Duration::from_secs(15);
 
+/// How the benchmark starts its subscriber process: `program args...`, followed by the
+/// peer's own arguments ([`PeerSpec::to_args`]). The program is expected to parse those
+/// into a [`PeerSpec`] and call [`crate::run_peer`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PeerCommand {
+    pub program: PathBuf,
+    /// Arguments before the peer's, e.g. the hidden subcommand that runs the peer.
+    pub args: Vec<String>,
+}
+
+impl PeerCommand {
+    /// This process's own binary, re-executed with `args` (then the peer's arguments).
+    pub fn current_exe<S: Into<String>>(args: impl IntoIterator<Item = S>) -> Result<Self> {
+        let program =
+            std::env::current_exe().map_err(BenchError::io("locate this process's binary"))?;
+        Ok(Self {
+            program,
+            args: args.into_iter().map(Into::into).collect(),
+        })
+    }
+
+    /// `the doorslam binary re-executed (`bench ipc-peer`)`, for the report's method.
+    fn describe(&self) -> String {
+        let name = self.program.file_name().map_or_else(
+            || self.program.display().to_string(),
+            |n| n.to_string_lossy().into_owned(),
+        );
+        format!("the {name} binary re-executed (`{}`)", self.args.join(" "))
+    }
+}
+
 /// Options of one run.
 #[derive(Debug, Clone)]
 pub struct IpcOptions {
+    /// Length of each measured phase of each case, seconds (0.05 to 600).
     pub seconds_per_case: f64,
-    /// Most latency samples per case.
+    /// Most latency samples per case (at least 1).
     pub frames: usize,
-    /// Interleaved repetitions of every case; figures are medians over them.
+    /// Interleaved repetitions of every case (1 to 100); figures are medians over them.
     pub rounds: usize,
     /// CPUs to pin the publisher and the subscriber process to.
     pub pin_cpus: Option<(usize, usize)>,
+    /// How to start the subscriber process.
+    pub peer: PeerCommand,
 }
 
-fn method() -> Vec<String> {
+impl IpcOptions {
+    /// Checks every field's range.
+    pub fn validate(&self) -> Result<()> {
+        let invalid = |option, reason| Err(BenchError::InvalidOption { option, reason });
+        if !(self.seconds_per_case.is_finite() && (0.05..=600.0).contains(&self.seconds_per_case)) {
+            return invalid("seconds_per_case", "must be between 0.05 and 600");
+        }
+        if self.frames == 0 {
+            return invalid("frames", "must be at least 1");
+        }
+        if !(1..=100).contains(&self.rounds) {
+            return invalid("rounds", "must be between 1 and 100");
+        }
+        Ok(())
+    }
+}
+
+fn method(peer: &PeerCommand) -> Vec<String> {
+    let subscriber = format!("subscriber = a second process: {}", peer.describe());
     [
-        "subscriber = a second process: the doorslam binary re-executed (`bench ipc-peer`)",
+        subscriber.as_str(),
         "latency = CLOCK_MONOTONIC read in the subscriber once the whole pair is readable, minus the stamp the publisher took right before its send call (after its one copy into the shm sample/buffer; for the Unix socket the write() is the send)",
         "latency phase: pairs paced 2 ms apart; iceoryx2_poll spins on receive(), iceoryx2_event and the two floors sleep in the kernel between pairs",
         "pairs_per_s: pairs received / (last receive - start of sending), publisher sending as fast as accepted; drops = sent - received over all phases",
@@ -61,16 +113,24 @@ fn method() -> Vec<String> {
     .collect()
 }
 
-/// Runs every case; a failing case becomes a row with `error` set and the run goes on.
+/// Runs every case, calling `progress` with the name of each before it starts; a failing
+/// case becomes a row with `error` set and the run goes on. Fails only on invalid options
+/// or when the publisher cannot be pinned.
 pub fn run(opts: &IpcOptions, progress: &dyn Fn(&str)) -> Result<IpcReport> {
+    opts.validate()?;
     let mut machine = Machine::probe();
     if let Some((publisher, _)) = opts.pin_cpus {
-        pin_to_cpu(publisher).with_context(|| format!("pin the publisher to CPU {publisher}"))?;
+        pin_to_cpu(publisher).map_err(|source| BenchError::PinCpu {
+            process: "publisher",
+            cpu: publisher,
+            source,
+        })?;
     }
     let mut results = Vec::new();
     let mut case = 0;
-    let rounds = opts.rounds.max(1);
+    let rounds = opts.rounds;
     for (w, h) in RESOLUTIONS {
+        let resolution = format!("{w}x{h}");
         let left = test_image(w, h, 0);
         let right = test_image(w, h, 1);
         let mut by_transport: Vec<Vec<ResultRow>> = vec![Vec::new(); Transport::ALL.len()];
@@ -84,18 +144,15 @@ pub fn run(opts: &IpcOptions, progress: &dyn Fn(&str)) -> Result<IpcReport> {
                 let row = match run_case(transport, w, h, case, opts, &left, &right) {
                     Ok(row) => row,
                     Err(e) => ResultRow {
-                        error: Some(format!("{e:#}")),
-                        ..ResultRow::default()
+                        error: Some(e.chain()),
+                        ..ResultRow::new(transport, resolution.clone())
                     },
                 };
                 by_transport[k].push(row);
             }
         }
         for (transport, runs) in Transport::ALL.into_iter().zip(by_transport) {
-            let mut row = combine_rounds(runs);
-            row.transport = transport.name().to_string();
-            row.resolution = format!("{w}x{h}");
-            results.push(row);
+            results.push(combine_rounds(transport, &resolution, runs));
         }
     }
     machine.loadavg_end = loadavg();
@@ -113,7 +170,7 @@ pub fn run(opts: &IpcOptions, progress: &dyn Fn(&str)) -> Result<IpcReport> {
             paced_hz: PACED_HZ,
             rounds,
             pin_cpus: opts.pin_cpus.map(|(a, b)| [a, b]),
-            method: method(),
+            method: method(&opts.peer),
         },
         results,
         targets,
@@ -124,14 +181,17 @@ pub fn run(opts: &IpcOptions, progress: &dyn Fn(&str)) -> Result<IpcReport> {
 /// fail, counts are summed, zero-copy must hold in every round; the per-round p99s are
 /// kept (targets compare transports round by round). If every round failed, the first
 /// failure is the row.
-fn combine_rounds(runs: Vec<ResultRow>) -> ResultRow {
+fn combine_rounds(transport: Transport, resolution: &str, runs: Vec<ResultRow>) -> ResultRow {
     let rounds = runs.len();
     let p99_us_rounds = runs.iter().map(|r| r.p99_us).collect();
     let p99_us_30hz_rounds = runs.iter().map(|r| r.p99_us_30hz).collect();
     let (ok, failed): (Vec<ResultRow>, Vec<ResultRow>) =
         runs.into_iter().partition(|r| r.error.is_none());
     let Some(first) = ok.first() else {
-        let mut row = failed.into_iter().next().unwrap_or_default();
+        let mut row = failed
+            .into_iter()
+            .next()
+            .unwrap_or_else(|| ResultRow::new(transport, resolution.to_string()));
         row.rounds = rounds;
         return row;
     };
@@ -162,41 +222,8 @@ fn combine_rounds(runs: Vec<ResultRow>) -> ResultRow {
         p99_us_rounds,
         p99_us_30hz_rounds,
         error: None,
-        ..ResultRow::default()
+        ..ResultRow::new(transport, resolution.to_string())
     }
-}
-
-fn peer_args(
-    transport: Transport,
-    w: u32,
-    h: u32,
-    ep: &PeerEndpoint,
-    deadline: f64,
-) -> Vec<String> {
-    let mut args: Vec<String> = [
-        "bench",
-        "ipc-peer",
-        "--transport",
-        transport.name(),
-        "--width",
-        &w.to_string(),
-        "--height",
-        &h.to_string(),
-        "--name",
-        &ep.name,
-        "--deadline-s",
-        &format!("{deadline:.1}"),
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
-    if let Some(connect) = &ep.connect {
-        args.extend(["--connect".to_string(), connect.clone()]);
-    }
-    if let Some(fd) = ep.fd {
-        args.extend(["--fd".to_string(), fd.to_string()]);
-    }
-    args
 }
 
 fn sleep_until(t: Instant) {
@@ -229,24 +256,31 @@ fn run_case(
 ) -> Result<ResultRow> {
     let tag = format!("bench{}c{case}", std::process::id());
     let phase = Duration::from_secs_f64(opts.seconds_per_case);
-    let (mut publisher, endpoint) = open_publisher(transport, &tag, w, h)
-        .with_context(|| format!("open the {} publisher", transport.name()))?;
-    let deadline = 3.0 * opts.seconds_per_case + 90.0;
-    let mut args = peer_args(transport, w, h, &endpoint, deadline);
-    if let Some((_, cpu)) = opts.pin_cpus {
-        args.extend(["--pin-cpu".to_string(), cpu.to_string()]);
-    }
-    let mut peer = PeerProcess::spawn(&args)?;
+    let (mut publisher, endpoint) =
+        open_publisher(transport, &tag, w, h).map_err(|e| BenchError::OpenPublisher {
+            transport,
+            source: Box::new(e),
+        })?;
+    let spec = PeerSpec {
+        transport,
+        width: w,
+        height: h,
+        endpoint,
+        deadline: Duration::from_secs_f64(3.0 * opts.seconds_per_case + 90.0),
+        pin_cpu: opts.pin_cpus.map(|(_, cpu)| cpu),
+    };
+    let mut peer = PeerProcess::spawn(&opts.peer, &spec.to_args())?;
     peer.expect("ready", PEER_START)?;
     publisher.accept_peer(Instant::now() + PEER_START)?;
 
     let mut seq = 0u64;
     let warm_until = Instant::now() + WARMUP_LIMIT;
     while !peer.said("warm")? {
-        anyhow::ensure!(
-            Instant::now() < warm_until,
-            "no warm-up frame reached the peer"
-        );
+        if Instant::now() >= warm_until {
+            return Err(BenchError::Peer(
+                "no warm-up frame reached the peer".to_string(),
+            ));
+        }
         publisher.publish(Phase::Warmup, seq, left, right)?;
         seq += 1;
         std::thread::sleep(Duration::from_millis(10));
@@ -268,13 +302,16 @@ fn run_case(
     let until = Instant::now() + REPORT_LIMIT;
     let report = loop {
         if let Some(line) = peer.wait_for("report ", Duration::from_millis(200))? {
-            break serde_json::from_str::<PeerReport>(&line).context("parse the peer's report")?;
+            break serde_json::from_str::<PeerReport>(&line)
+                .map_err(|e| BenchError::PeerReport("parse", e))?;
         }
-        anyhow::ensure!(Instant::now() < until, "the peer sent no report");
+        if Instant::now() >= until {
+            return Err(BenchError::Peer("the peer sent no report".to_string()));
+        }
         publisher.publish(Phase::End, seq, left, right)?;
     };
     peer.finish(Duration::from_secs(10))?;
-    Ok(combine(transport, publisher.as_ref(), &sent, &report))
+    Ok(combine(transport, w, h, publisher.as_ref(), &sent, &report))
 }
 
 /// Sends the three phases; `flat_out: false` skips the throughput phase (the wake-up
@@ -345,6 +382,8 @@ fn us(ns: Option<u64>) -> Option<f64> {
 
 fn combine(
     transport: Transport,
+    w: u32,
+    h: u32,
     publisher: &dyn Publish,
     sent: &Sent,
     r: &PeerReport,
@@ -402,6 +441,6 @@ fn combine(
             format!("{path} ({kind})")
         }),
         error: (!r.ended).then(|| "the peer never saw the end marker".to_string()),
-        ..ResultRow::default()
+        ..ResultRow::new(transport, format!("{w}x{h}"))
     }
 }
