@@ -65,7 +65,7 @@ fn merge(args: &PcmArgs) -> Result<PoseGraph<Isometry3<f64>>> {
                 merged.add_pose(k, *p);
             }
         }
-        for e in &g.edges {
+        for e in g.edges() {
             let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
             let q = e.measured.rotation.coords;
             let t = e.measured.translation.vector;
@@ -75,7 +75,9 @@ fn merge(args: &PcmArgs) -> Result<PoseGraph<Isometry3<f64>>> {
                     merged.index_of(a).unwrap_or_default(),
                     merged.index_of(b).unwrap_or_default(),
                 );
-                merged.add_edge(i, j, e.measured, e.information);
+                merged
+                    .add_edge(i, j, e.measured, e.information)
+                    .with_context(|| format!("merging {}", path.display()))?;
             }
         }
     }
@@ -118,9 +120,9 @@ pub fn run(args: PcmArgs) -> Result<()> {
         };
         let mut filtered = graph.clone();
         let keys = graph.keys().to_vec();
-        filtered
-            .edges
-            .retain(|e| graph.edge_class(e) != candidate || keep.contains(&(keys[e.i], keys[e.j])));
+        filtered.retain_edges(|e| {
+            graph.edge_class(e) != candidate || keep.contains(&(keys[e.i], keys[e.j]))
+        });
         write_g2o(&Graph::Se3(filtered), out)?;
     }
     if args.json {

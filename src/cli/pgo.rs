@@ -94,7 +94,7 @@ fn run_graph<G: Chordal>(
     let summary = doorslam_backend::optimize(g, anchor, opts)?;
     Ok(Outcome {
         poses: g.len(),
-        edges: g.edges.len(),
+        edges: g.edges().len(),
         initial_chi2,
         init_chi2,
         summary,

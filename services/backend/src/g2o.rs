@@ -10,7 +10,7 @@ use std::path::Path;
 
 use nalgebra::{Isometry2, Isometry3, Quaternion, Translation3, UnitQuaternion};
 
-use crate::graph::PoseGraph;
+use crate::graph::{check_information, InformationCheck, PoseGraph};
 use crate::lie::{LieGroup, TangentMatrix};
 
 /// Errors of reading or writing a graph file; parse errors name the file and line.
@@ -116,7 +116,7 @@ impl Ctx<'_> {
         Ok(UnitQuaternion::from_quaternion(q))
     }
     /// Symmetric matrix from the row-major upper triangle, permuted by `order`
-    /// (file index -> solver index), checked positive definite.
+    /// (file index -> solver index), checked by [`check_information`].
     fn information(
         &self,
         tag: &str,
@@ -134,11 +134,9 @@ impl Ctx<'_> {
                 k += 1;
             }
         }
-        if m.view((0, 0), (n, n)).into_owned().cholesky().is_none() {
-            return Err(self.err(format!(
-                "{tag}: information matrix is not positive definite"
-            )));
-        }
+        // The graph's rule, so that a file holds exactly the problems the API would build.
+        check_information(&m, n, InformationCheck::PositiveDefinite)
+            .map_err(|e| self.err(format!("{tag}: {e}")))?;
         Ok(m)
     }
 }
@@ -296,14 +294,12 @@ fn assemble<G: LieGroup>(
         }
     }
     for (i, j, z, info) in edges {
+        // Every key got a pose just above.
         let (a, b) = (g.index_of(i).unwrap_or(0), g.index_of(j).unwrap_or(0));
-        if a == b {
-            return Err(GraphError::Graph {
-                file: file.into(),
-                msg: format!("edge from pose {i} to itself"),
-            });
-        }
-        g.add_edge(a, b, z, info);
+        g.add_edge(a, b, z, info).map_err(|e| GraphError::Graph {
+            file: file.into(),
+            msg: e.to_string(),
+        })?;
     }
     if known.iter().all(|k| *k) {
         return Ok(known);
@@ -359,7 +355,7 @@ pub fn write_g2o(graph: &Graph, path: &Path) -> Result<(), GraphError> {
                 )
                 .map_err(io)?;
             }
-            for e in &g.edges {
+            for e in g.edges() {
                 let t = e.measured.translation.vector;
                 let info = upper_triangle(&e.information, 3, &SE2_ORDER);
                 let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
@@ -376,7 +372,7 @@ pub fn write_g2o(graph: &Graph, path: &Path) -> Result<(), GraphError> {
             for (k, p) in g.keys().iter().zip(g.poses()) {
                 writeln!(w, "VERTEX_SE3:QUAT {k} {}", join(&pose7(p))).map_err(io)?;
             }
-            for e in &g.edges {
+            for e in g.edges() {
                 let info = upper_triangle(&e.information, 6, &SE3_ORDER);
                 let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
                 writeln!(

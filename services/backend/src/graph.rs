@@ -1,4 +1,10 @@
 //! Pose graphs: poses keyed by `u64`, between-factors with information matrices.
+//!
+//! The graph only holds problems the solver can take as they are: every edge joins two
+//! distinct existing poses and has a finite, symmetric information matrix that is positive
+//! definite unless the caller explicitly chose otherwise ([`InformationCheck::AsIs`]). The
+//! edge list is private so that this holds for every graph, not just for those built
+//! carefully; [`check_information`] holds the rules, shared with the g2o reader.
 
 use std::collections::BTreeMap;
 
@@ -54,13 +60,110 @@ pub struct BetweenFactor<G> {
     pub information: TangentMatrix,
 }
 
+/// How strictly [`PoseGraph::add_edge_with`] (and the g2o reader) checks an information
+/// matrix. Finiteness and symmetry are always required: a NaN poisons the cost, and the
+/// solver reads only the lower triangle, so an asymmetric matrix would silently become a
+/// different one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum InformationCheck {
+    /// Also positive definite (the default): an indefinite Ω makes rᵀΩr negative in some
+    /// directions, so the cost is not a sum of squares and Gauss-Newton's normal equations
+    /// may be singular or indefinite.
+    #[default]
+    PositiveDefinite,
+    /// Use the matrix as written even if it is indefinite or singular: published benchmark
+    /// files (SE-Sync's cubicle) contain such matrices and other solvers accept them.
+    /// Levenberg-Marquardt's damping keeps its steps defined; Gauss-Newton may fail.
+    AsIs,
+}
+
+/// Why an information matrix was refused by [`check_information`].
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum InformationError {
+    #[error("information matrix entry ({row}, {col}) is {value}, not finite")]
+    NonFinite { row: usize, col: usize, value: f64 },
+    #[error(
+        "information matrix is not symmetric: entries ({row}, {col}) and ({col}, {row}) are {a} and {b}"
+    )]
+    NotSymmetric {
+        row: usize,
+        col: usize,
+        a: f64,
+        b: f64,
+    },
+    #[error("information matrix is not positive definite")]
+    NotPositiveDefinite,
+}
+
+/// Relative tolerance of the symmetry check, against the largest entry: a matrix computed
+/// as `AᵀA` or as an inverse is symmetric only to rounding.
+pub const SYMMETRY_TOLERANCE: f64 = 1e-9;
+
+/// The one definition of an acceptable information matrix, for the graph API and the g2o
+/// reader alike: the leading `dim × dim` block (the rest is padding, see [`crate::lie`])
+/// must be finite, symmetric to [`SYMMETRY_TOLERANCE`] and, with
+/// [`InformationCheck::PositiveDefinite`], have a Cholesky factorization.
+pub fn check_information(
+    information: &TangentMatrix,
+    dim: usize,
+    check: InformationCheck,
+) -> Result<(), InformationError> {
+    let dim = dim.min(6);
+    let mut scale = 0.0f64;
+    for col in 0..dim {
+        for row in 0..dim {
+            let value = information[(row, col)];
+            if !value.is_finite() {
+                return Err(InformationError::NonFinite { row, col, value });
+            }
+            scale = scale.max(value.abs());
+        }
+    }
+    for col in 0..dim {
+        for row in col + 1..dim {
+            let (a, b) = (information[(row, col)], information[(col, row)]);
+            if (a - b).abs() > SYMMETRY_TOLERANCE * scale {
+                return Err(InformationError::NotSymmetric { row, col, a, b });
+            }
+        }
+    }
+    if check == InformationCheck::PositiveDefinite
+        && information
+            .view((0, 0), (dim, dim))
+            .into_owned()
+            .cholesky()
+            .is_none()
+    {
+        return Err(InformationError::NotPositiveDefinite);
+    }
+    Ok(())
+}
+
+/// Why [`PoseGraph::add_edge`] refused an edge; nothing was added.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum EdgeError {
+    #[error("edge from pose {label} (index {index}) to itself")]
+    SelfLoop { index: usize, label: String },
+    #[error("pose index {index} is out of range: the graph has {len} poses")]
+    UnknownPose { index: usize, len: usize },
+    #[error("edge {from} -> {to}: the measurement is not finite")]
+    NonFiniteMeasurement { from: String, to: String },
+    #[error("edge {from} -> {to}: {source}")]
+    Information {
+        from: String,
+        to: String,
+        #[source]
+        source: InformationError,
+    },
+}
+
 /// A pose graph: poses (dense indices, each with its original key) and between-factors.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PoseGraph<G> {
     keys: Vec<u64>,
     poses: Vec<G>,
     index: BTreeMap<u64, usize>,
-    pub edges: Vec<BetweenFactor<G>>,
+    edges: Vec<BetweenFactor<G>>,
 }
 
 impl<G: LieGroup> Default for PoseGraph<G> {
@@ -91,14 +194,77 @@ impl<G: LieGroup> PoseGraph<G> {
         self.poses.len() - 1
     }
 
-    /// Adds a between-factor on two existing poses (by index).
-    pub fn add_edge(&mut self, i: usize, j: usize, measured: G, information: TangentMatrix) {
+    /// Adds a between-factor on two existing, distinct poses (by index) with a positive-
+    /// definite information matrix; returns the new edge's index.
+    pub fn add_edge(
+        &mut self,
+        i: usize,
+        j: usize,
+        measured: G,
+        information: TangentMatrix,
+    ) -> Result<usize, EdgeError> {
+        self.add_edge_with(
+            i,
+            j,
+            measured,
+            information,
+            InformationCheck::PositiveDefinite,
+        )
+    }
+
+    /// [`Self::add_edge`] with an explicit information check: `InformationCheck::AsIs`
+    /// accepts indefinite matrices (still finite and symmetric).
+    pub fn add_edge_with(
+        &mut self,
+        i: usize,
+        j: usize,
+        measured: G,
+        information: TangentMatrix,
+        check: InformationCheck,
+    ) -> Result<usize, EdgeError> {
+        for index in [i, j] {
+            if index >= self.len() {
+                return Err(EdgeError::UnknownPose {
+                    index,
+                    len: self.len(),
+                });
+            }
+        }
+        if i == j {
+            // Its two Jacobian blocks would land on one diagonal block, which the solver's
+            // pattern has no off-diagonal slot for; and it constrains nothing.
+            return Err(EdgeError::SelfLoop {
+                index: i,
+                label: key::label(self.keys[i]),
+            });
+        }
+        let names = || (key::label(self.keys[i]), key::label(self.keys[j]));
+        if measured.log().iter().any(|v| !v.is_finite()) {
+            let (from, to) = names();
+            return Err(EdgeError::NonFiniteMeasurement { from, to });
+        }
+        check_information(&information, G::DIM, check).map_err(|source| {
+            let (from, to) = names();
+            EdgeError::Information { from, to, source }
+        })?;
         self.edges.push(BetweenFactor {
             i,
             j,
             measured,
             information,
         });
+        Ok(self.edges.len() - 1)
+    }
+
+    /// The between-factors, in the order they were added.
+    pub fn edges(&self) -> &[BetweenFactor<G>] {
+        &self.edges
+    }
+
+    /// Keeps only the edges for which `keep` is true (in order). Removing edges cannot make
+    /// an edge invalid, so this is the one mutation of the edge list besides adding.
+    pub fn retain_edges(&mut self, keep: impl FnMut(&BetweenFactor<G>) -> bool) {
+        self.edges.retain(keep);
     }
 
     pub fn len(&self) -> usize {

@@ -28,10 +28,10 @@ use crate::sparsity::BlockPattern;
 /// odometry edges first (they are the most accurate chain). Returns the poses reached.
 pub fn chain<G: LieGroup>(graph: &mut PoseGraph<G>, start: usize, known: &[bool]) -> usize {
     let mut adj: Vec<Vec<(usize, usize)>> = vec![Vec::new(); graph.len()];
-    let mut order: Vec<usize> = (0..graph.edges.len()).collect();
-    order.sort_by_key(|&n| graph.edge_class(&graph.edges[n]) != EdgeClass::Odometry);
+    let mut order: Vec<usize> = (0..graph.edges().len()).collect();
+    order.sort_by_key(|&n| graph.edge_class(&graph.edges()[n]) != EdgeClass::Odometry);
     for n in order {
-        let e = &graph.edges[n];
+        let e = &graph.edges()[n];
         adj[e.i].push((e.j, n));
         adj[e.j].push((e.i, n));
     }
@@ -50,7 +50,7 @@ pub fn chain<G: LieGroup>(graph: &mut PoseGraph<G>, start: usize, known: &[bool]
             if known.get(b).copied().unwrap_or(false) {
                 continue;
             }
-            let e = &graph.edges[n];
+            let e = &graph.edges()[n];
             let xa = graph.poses()[a];
             // Xⱼ = Xᵢ Z, or Xᵢ = Xⱼ Z⁻¹ when walking the edge backwards.
             graph.poses_mut()[b] = if e.i == a {
@@ -127,31 +127,27 @@ fn solve_translations(
         let (vi, vj) = (var_of(i, anchor), var_of(j, anchor));
         // Residual tⱼ - tᵢ - d.
         if let Some(a) = vi {
-            pattern.add_diagonal(
-                &mut values,
-                &pattern.block_offsets(a, a).unwrap_or([0; 6]),
-                &one(w),
-            );
+            if let Some(slot) = pattern.diagonal_block(a) {
+                pattern.add_diagonal(&mut values, &slot, &one(w));
+            }
             for ax in 0..3 {
                 rhs[(a, ax)] -= w * d[ax];
             }
         }
         if let Some(b) = vj {
-            pattern.add_diagonal(
-                &mut values,
-                &pattern.block_offsets(b, b).unwrap_or([0; 6]),
-                &one(w),
-            );
+            if let Some(slot) = pattern.diagonal_block(b) {
+                pattern.add_diagonal(&mut values, &slot, &one(w));
+            }
             for ax in 0..3 {
                 rhs[(b, ax)] += w * d[ax];
             }
         }
         match (vi, vj) {
-            (Some(a), Some(b)) => pattern.add_off_diagonal(
-                &mut values,
-                &pattern.block_offsets(a, b).unwrap_or([0; 6]),
-                &one(-w),
-            ),
+            (Some(a), Some(b)) => {
+                if let Some(slot) = pattern.off_diagonal_block(a, b) {
+                    pattern.add_off_diagonal(&mut values, &slot, &one(-w));
+                }
+            }
             (None, Some(b)) => (0..3).for_each(|ax| rhs[(b, ax)] += w * anchor_t[ax]),
             (Some(a), None) => (0..3).for_each(|ax| rhs[(a, ax)] += w * anchor_t[ax]),
             (None, None) => {}
@@ -183,9 +179,9 @@ fn project_so3(m: &Matrix3<f64>) -> Matrix3<f64> {
 impl Chordal for Isometry3<f64> {
     fn chordal(graph: &mut PoseGraph<Self>, anchor: usize) -> Result<(), SolveError> {
         let n = graph.len().checked_sub(1).ok_or(SolveError::Empty)?;
-        let pairs: Vec<(usize, usize)> = graph.edges.iter().map(|e| (e.i, e.j)).collect();
+        let pairs: Vec<(usize, usize)> = graph.edges().iter().map(|e| (e.i, e.j)).collect();
         let w: Vec<(f64, f64)> = graph
-            .edges
+            .edges()
             .iter()
             .map(|e| isotropic_weights(&e.information, 3, 3))
             .collect();
@@ -203,18 +199,18 @@ impl Chordal for Isometry3<f64> {
             .rotation
             .to_rotation_matrix()
             .into_inner();
-        for (e, &(kappa, _)) in graph.edges.iter().zip(&w) {
+        for (e, &(kappa, _)) in graph.edges().iter().zip(&w) {
             let z = e.measured.rotation.to_rotation_matrix().into_inner();
             let mut id = TangentMatrix::zeros();
             id.fixed_view_mut::<3, 3>(0, 0)
                 .copy_from(&(Matrix3::identity() * kappa));
             let (vi, vj) = (var_of(e.i, anchor), var_of(e.j, anchor));
-            for v in [vi, vj].into_iter().flatten() {
-                pattern.add_diagonal(
-                    &mut values,
-                    &pattern.block_offsets(v, v).unwrap_or([0; 6]),
-                    &id,
-                );
+            for slot in [vi, vj]
+                .into_iter()
+                .flatten()
+                .filter_map(|v| pattern.diagonal_block(v))
+            {
+                pattern.add_diagonal(&mut values, &slot, &id);
             }
             match (vi, vj) {
                 (Some(a), Some(b)) => {
@@ -226,11 +222,9 @@ impl Chordal for Isometry3<f64> {
                     };
                     let mut m = TangentMatrix::zeros();
                     m.fixed_view_mut::<3, 3>(0, 0).copy_from(&block);
-                    pattern.add_off_diagonal(
-                        &mut values,
-                        &pattern.block_offsets(a, b).unwrap_or([0; 6]),
-                        &m,
-                    );
+                    if let Some(slot) = pattern.off_diagonal_block(a, b) {
+                        pattern.add_off_diagonal(&mut values, &slot, &m);
+                    }
                 }
                 (None, Some(b)) => {
                     for k in 0..3 {
@@ -256,7 +250,7 @@ impl Chordal for Isometry3<f64> {
             .collect();
         // 2. Translations with those rotations.
         let rotated: Vec<Vector3<f64>> = graph
-            .edges
+            .edges()
             .iter()
             .map(|e| rotations[e.i] * e.measured.translation.vector)
             .collect();
@@ -276,9 +270,9 @@ impl Chordal for Isometry3<f64> {
 impl Chordal for Isometry2<f64> {
     fn chordal(graph: &mut PoseGraph<Self>, anchor: usize) -> Result<(), SolveError> {
         let n = graph.len().checked_sub(1).ok_or(SolveError::Empty)?;
-        let pairs: Vec<(usize, usize)> = graph.edges.iter().map(|e| (e.i, e.j)).collect();
+        let pairs: Vec<(usize, usize)> = graph.edges().iter().map(|e| (e.i, e.j)).collect();
         let w: Vec<(f64, f64)> = graph
-            .edges
+            .edges()
             .iter()
             .map(|e| isotropic_weights(&e.information, 1, 2))
             .collect();
@@ -296,7 +290,7 @@ impl Chordal for Isometry2<f64> {
             let r = graph.poses()[anchor].rotation;
             Vector2::new(r.cos_angle(), r.sin_angle())
         };
-        for (e, &(kappa, _)) in graph.edges.iter().zip(&w) {
+        for (e, &(kappa, _)) in graph.edges().iter().zip(&w) {
             let (c, s) = (
                 e.measured.rotation.cos_angle(),
                 e.measured.rotation.sin_angle(),
@@ -306,12 +300,12 @@ impl Chordal for Isometry2<f64> {
             id.fixed_view_mut::<2, 2>(0, 0)
                 .copy_from(&(Matrix2::identity() * kappa));
             let (vi, vj) = (var_of(e.i, anchor), var_of(e.j, anchor));
-            for v in [vi, vj].into_iter().flatten() {
-                pattern.add_diagonal(
-                    &mut values,
-                    &pattern.block_offsets(v, v).unwrap_or([0; 6]),
-                    &id,
-                );
+            for slot in [vi, vj]
+                .into_iter()
+                .flatten()
+                .filter_map(|v| pattern.diagonal_block(v))
+            {
+                pattern.add_diagonal(&mut values, &slot, &id);
             }
             match (vi, vj) {
                 (Some(a), Some(b)) => {
@@ -322,11 +316,9 @@ impl Chordal for Isometry2<f64> {
                     };
                     let mut m = TangentMatrix::zeros();
                     m.fixed_view_mut::<2, 2>(0, 0).copy_from(&block);
-                    pattern.add_off_diagonal(
-                        &mut values,
-                        &pattern.block_offsets(a, b).unwrap_or([0; 6]),
-                        &m,
-                    );
+                    if let Some(slot) = pattern.off_diagonal_block(a, b) {
+                        pattern.add_off_diagonal(&mut values, &slot, &m);
+                    }
                 }
                 (None, Some(b)) => {
                     let v = mz * ua * kappa;
@@ -349,7 +341,7 @@ impl Chordal for Isometry2<f64> {
             })
             .collect();
         let rotated: Vec<Vector3<f64>> = graph
-            .edges
+            .edges()
             .iter()
             .map(|e| {
                 let d = angles[e.i] * e.measured.translation.vector;

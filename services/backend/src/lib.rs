@@ -27,7 +27,10 @@ pub mod solver;
 pub mod sparsity;
 
 pub use g2o::{read_g2o, write_g2o, G2oFile, Graph, GraphError, UnknownTags};
-pub use graph::{key, BetweenFactor, EdgeClass, PoseGraph};
+pub use graph::{
+    check_information, key, BetweenFactor, EdgeClass, EdgeError, InformationCheck,
+    InformationError, PoseGraph,
+};
 pub use lie::LieGroup;
 pub use linear::{LinearError, SparseCholesky};
 pub use robust::Kernel;

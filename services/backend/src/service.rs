@@ -16,7 +16,7 @@ use doorslam_ipc::{
 };
 use nalgebra::Isometry3;
 
-use crate::graph::{key, PoseGraph};
+use crate::graph::{check_information, key, InformationCheck, InformationError, PoseGraph};
 use crate::journal::{Entry, Journal, JournalError};
 use crate::solver::{Optimizer, SolverOptions};
 
@@ -56,6 +56,9 @@ pub struct BackendReport {
     /// Keyframes and edges received again (history handed to a restarted back-end).
     pub duplicates: usize,
     pub gaps: usize,
+    /// Odometry edges refused by the graph (non-finite measurement or information that is
+    /// not symmetric positive definite): logged and dropped, not journaled.
+    pub rejected_edges: usize,
 }
 
 /// The graph being built, with the bookkeeping of ids.
@@ -68,7 +71,21 @@ struct State {
 }
 
 impl State {
-    /// Applies an entry; returns false for a duplicate or an edge to unknown poses.
+    /// Whether the graph would take this odometry entry's information matrix (the check
+    /// `add_edge` does), so the commonest bad edge is refused before it is journaled.
+    fn validate(&self, e: &Entry) -> Result<(), InformationError> {
+        match e {
+            Entry::Odometry { information, .. } => check_information(
+                &matrix_from_upper(information),
+                6,
+                InformationCheck::PositiveDefinite,
+            ),
+            Entry::Keyframe { .. } => Ok(()),
+        }
+    }
+
+    /// Applies an entry; returns false for a duplicate, an edge to unknown poses, or an
+    /// edge the graph refuses (logged: a journal written by an older version may hold one).
     fn apply(&mut self, e: &Entry) -> bool {
         match e {
             Entry::Keyframe { id, pose, .. } => {
@@ -91,14 +108,24 @@ impl State {
                     self.graph.index_of(key::symbol(self.robot, *to)),
                 );
                 match (a, b) {
-                    (Some(a), Some(b)) if a != b && self.odometry.insert((*from, *to)) => {
-                        self.graph.add_edge(
+                    (Some(a), Some(b)) if !self.odometry.contains(&(*from, *to)) => {
+                        match self.graph.add_edge(
                             a,
                             b,
                             pose_from_array(relative),
                             matrix_from_upper(information),
-                        );
-                        true
+                        ) {
+                            Ok(_) => {
+                                // Only now: a refused edge must not make a corrected
+                                // retransmission look like a duplicate.
+                                self.odometry.insert((*from, *to));
+                                true
+                            }
+                            Err(err) => {
+                                tracing::warn!(from, to, "backend: odometry edge refused: {err}");
+                                false
+                            }
+                        }
                     }
                     _ => false,
                 }
@@ -209,9 +236,17 @@ pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
             if state.odometry.contains(&(from, to)) {
                 report.duplicates += 1;
             } else if known(&state, from) && known(&state, to) {
+                if let Err(err) = state.validate(&entry) {
+                    tracing::warn!(from, to, "backend: odometry edge refused: {err}");
+                    report.rejected_edges += 1;
+                    continue;
+                }
                 journal.append(&entry)?;
-                state.apply(&entry);
-                report.accepted_edges += 1;
+                if state.apply(&entry) {
+                    report.accepted_edges += 1;
+                } else {
+                    report.rejected_edges += 1;
+                }
             } else {
                 waiting.push_back(entry);
             }
@@ -223,7 +258,8 @@ pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
             );
         }
         pending = waiting;
-        if progressed && since_optimized >= config.optimize_every && !state.graph.edges.is_empty() {
+        if progressed && since_optimized >= config.optimize_every && !state.graph.edges().is_empty()
+        {
             // A graph in the middle of being built may be disconnected: try again later.
             let result = match optimizer.as_mut() {
                 Some(opt) => opt.optimize(&mut state.graph, &SolverOptions::default()),

@@ -18,7 +18,7 @@ use crate::graph::{between_linearized, between_residual, EdgeClass, PoseGraph};
 use crate::lie::{LieGroup, Tangent, TangentMatrix};
 use crate::linear::{LinearError, SparseCholesky};
 use crate::robust::{gnc_tls_weight, Kernel};
-use crate::sparsity::BlockPattern;
+use crate::sparsity::{BlockPattern, DiagonalSlot, OffDiagonalSlot};
 
 /// Failures of the optimizer.
 #[derive(Debug, thiserror::Error)]
@@ -95,7 +95,9 @@ struct EdgeSlots {
     /// Variable index of pose i and j (`None` for the anchor).
     vi: Option<usize>,
     vj: Option<usize>,
-    off: [usize; 6],
+    /// The off-diagonal block (both poses variables; never the same one, see
+    /// [`PoseGraph::add_edge`]).
+    off: Option<OffDiagonalSlot>,
 }
 
 /// The optimizer's reusable state: pattern, offsets and the Cholesky with its symbolic
@@ -103,11 +105,14 @@ struct EdgeSlots {
 pub struct Optimizer {
     anchor: usize,
     poses: usize,
-    edges: usize,
+    /// (i, j) of every edge, in edge order: the offsets in `slots` are per edge position,
+    /// so they are valid exactly for a graph with this list (equal counts are not enough:
+    /// replacing one edge by another keeps them and moves a block).
+    structure: Vec<(usize, usize)>,
     bdim: usize,
     pattern: BlockPattern,
     slots: Vec<EdgeSlots>,
-    diag: Vec<[usize; 6]>,
+    diag: Vec<DiagonalSlot>,
     diagonal: Vec<usize>,
     linear: SparseCholesky,
 }
@@ -135,21 +140,19 @@ impl Optimizer {
         let bdim = G::DIM;
         let n_vars = graph.len() - 1;
         let pairs = graph
-            .edges
+            .edges()
             .iter()
             .filter_map(|e| Some((var_of(e.i, anchor)?, var_of(e.j, anchor)?)));
         let pattern = BlockPattern::new(n_vars, bdim, pairs);
-        let diag: Vec<[usize; 6]> = (0..n_vars)
-            .map(|v| pattern.block_offsets(v, v).unwrap_or([0; 6]))
-            .collect();
+        let diag = pattern.diagonal_blocks();
         let slots = graph
-            .edges
+            .edges()
             .iter()
             .map(|e| {
                 let (vi, vj) = (var_of(e.i, anchor), var_of(e.j, anchor));
                 let off = match (vi, vj) {
-                    (Some(a), Some(b)) => pattern.block_offsets(a, b).unwrap_or([0; 6]),
-                    _ => [0; 6],
+                    (Some(a), Some(b)) => pattern.off_diagonal_block(a, b),
+                    _ => None,
                 };
                 EdgeSlots { vi, vj, off }
             })
@@ -158,7 +161,7 @@ impl Optimizer {
         Ok(Self {
             anchor,
             poses: graph.len(),
-            edges: graph.edges.len(),
+            structure: graph.edges().iter().map(|e| (e.i, e.j)).collect(),
             bdim,
             pattern,
             slots,
@@ -168,9 +171,16 @@ impl Optimizer {
         })
     }
 
-    /// Whether this optimizer still matches the graph's structure (same poses and edges).
+    /// Whether this optimizer still matches the graph's structure: the same number of poses
+    /// and the same (i, j) for every edge, in order.
     pub fn matches<G: LieGroup>(&self, graph: &PoseGraph<G>) -> bool {
-        self.poses == graph.len() && self.edges == graph.edges.len()
+        self.poses == graph.len()
+            && self.structure.len() == graph.edges().len()
+            && self
+                .structure
+                .iter()
+                .zip(graph.edges())
+                .all(|(&(i, j), e)| i == e.i && j == e.j)
     }
 
     /// Re-prepares after poses or edges were added, keeping the Cholesky (its symbolic
@@ -197,7 +207,7 @@ impl Optimizer {
         g.fill(0.0);
         let d = self.bdim;
         let poses = graph.poses();
-        for ((e, slot), &w) in graph.edges.iter().zip(&self.slots).zip(weights) {
+        for ((e, slot), &w) in graph.edges().iter().zip(&self.slots).zip(weights) {
             if w == 0.0 {
                 continue;
             }
@@ -209,14 +219,14 @@ impl Optimizer {
                 self.pattern
                     .add_diagonal(values, &self.diag[a], &(ji.transpose() * om_ji));
                 add_gradient(g, a, d, &(ji.transpose() * om_r));
-                if let Some(b) = slot.vj {
+                if let (Some(b), Some(off)) = (slot.vj, &slot.off) {
                     // Off-diagonal block rows = higher variable index.
                     let block: TangentMatrix = if b > a {
                         jj.transpose() * om_ji
                     } else {
                         ji.transpose() * (om * jj)
                     };
-                    self.pattern.add_off_diagonal(values, &slot.off, &block);
+                    self.pattern.add_off_diagonal(values, off, &block);
                 }
             }
             if let Some(b) = slot.vj {
@@ -244,7 +254,7 @@ fn check_connected<G: LieGroup>(graph: &PoseGraph<G>, anchor: usize) -> Result<(
 /// Kernel of each edge from its class.
 fn kernels<G: LieGroup>(graph: &PoseGraph<G>, opts: &SolverOptions) -> Vec<Kernel> {
     graph
-        .edges
+        .edges()
         .iter()
         .map(|e| match graph.edge_class(e) {
             EdgeClass::Odometry => opts.odometry_kernel,
@@ -261,7 +271,7 @@ fn costs<G: LieGroup>(
     weights: &[f64],
 ) -> (f64, f64) {
     let (mut robust, mut chi2) = (0.0, 0.0);
-    for ((e, k), w) in graph.edges.iter().zip(kernels).zip(weights) {
+    for ((e, k), w) in graph.edges().iter().zip(kernels).zip(weights) {
         let r = between_residual(&poses[e.i], &poses[e.j], &e.measured);
         let s = r.dot(&(e.information * r));
         chi2 += s;
@@ -297,7 +307,7 @@ impl Optimizer {
         let start = Instant::now();
         let kernels = kernels(graph, opts);
         let initial_chi2 = graph.chi2();
-        let mut weights = vec![1.0; graph.edges.len()];
+        let mut weights = vec![1.0; graph.edges().len()];
         let (iterations, converged) = match opts.loop_kernel {
             Kernel::Gnc { c2 } => self.gnc(graph, opts, &kernels, &mut weights, c2)?,
             _ => self.least_squares(graph, opts, &kernels, &weights, opts.max_iterations)?,
@@ -331,7 +341,7 @@ impl Optimizer {
         let (first, _) = self.least_squares(graph, opts, kernels, weights, opts.max_iterations)?;
         total += first;
         let residuals = |graph: &PoseGraph<G>| -> Vec<f64> {
-            graph.edges.iter().map(|e| graph.edge_chi2(e)).collect()
+            graph.edges().iter().map(|e| graph.edge_chi2(e)).collect()
         };
         let s = residuals(graph);
         let max_s = s
@@ -396,7 +406,7 @@ impl Optimizer {
                 return Ok((it, true));
             }
             // IRLS: kernel weights at the current estimate times the static weights.
-            for (k, e) in graph.edges.iter().enumerate() {
+            for (k, e) in graph.edges().iter().enumerate() {
                 weights[k] = static_weights[k] * kernels[k].weight(graph.edge_chi2(e));
             }
             self.linearize(graph, &weights, &mut values, &mut g);

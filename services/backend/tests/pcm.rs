@@ -32,11 +32,11 @@ fn load(rel: &str, robots: usize) -> PoseGraph<Isometry3<f64>> {
                 merged.add_pose(k, *p);
             }
         }
-        for e in &g.edges {
+        for e in g.edges() {
             let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
             if seen.insert((a, b)) {
                 let (i, j) = (merged.index_of(a).unwrap(), merged.index_of(b).unwrap());
-                merged.add_edge(i, j, e.measured, e.information);
+                merged.add_edge(i, j, e.measured, e.information).unwrap();
             }
         }
     }
@@ -108,7 +108,7 @@ fn a_consistent_pair_passes_and_a_perturbed_one_fails() {
     let odo = Odometry::from_graph(&graph).unwrap();
     let keys = graph.keys();
     let closures: Vec<Closure> = graph
-        .edges
+        .edges()
         .iter()
         .filter(|e| key::robot(keys[e.i]) != key::robot(keys[e.j]))
         .map(|e| Closure {
@@ -141,18 +141,17 @@ fn incremental_pcm_equals_batch() {
     let batch = batch.run(&graph).unwrap();
     // Same graph with only the first half of the inter-robot edges, then all of them.
     let keys = graph.keys().to_vec();
-    let inter: Vec<usize> = (0..graph.edges.len())
-        .filter(|&n| key::robot(keys[graph.edges[n].i]) != key::robot(keys[graph.edges[n].j]))
+    let edges = graph.edges();
+    let inter: Vec<usize> = (0..edges.len())
+        .filter(|&n| key::robot(keys[edges[n].i]) != key::robot(keys[edges[n].j]))
         .collect();
     let mut partial = graph.clone();
     let drop: BTreeSet<usize> = inter[inter.len() / 2..].iter().copied().collect();
-    partial.edges = graph
-        .edges
-        .iter()
-        .enumerate()
-        .filter(|(n, _)| !drop.contains(n))
-        .map(|(_, e)| e.clone())
-        .collect();
+    let mut n = 0;
+    partial.retain_edges(|_| {
+        n += 1;
+        !drop.contains(&(n - 1))
+    });
     let mut incremental = Pcm::new(0.99, Scope::InterRobot).unwrap();
     let first = incremental.run(&partial).unwrap();
     assert_eq!(first.closures, inter.len() / 2);

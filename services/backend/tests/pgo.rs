@@ -131,7 +131,7 @@ fn files_without_vertices_are_chained_from_odometry() {
         panic!("kitti_00 is 2-D")
     };
     // Odometry chaining reproduces consecutive odometry exactly.
-    let e = g.edges.iter().find(|e| e.j == e.i + 1).unwrap();
+    let e = g.edges().iter().find(|e| e.j == e.i + 1).unwrap();
     assert!(g.edge_chi2(e) < 1e-12);
     init::odometry(&mut g, 0).unwrap();
     let s = optimize(&mut g, 0, &SolverOptions::default()).unwrap();
@@ -153,16 +153,16 @@ fn incremental_resolve_matches_batch() {
     for (k, p) in full.keys().iter().zip(batch.poses()).take(half) {
         g.add_pose(*k, *p);
     }
-    for e in full.edges.iter().filter(|e| e.i < half && e.j < half) {
-        g.add_edge(e.i, e.j, e.measured, e.information);
+    for e in full.edges().iter().filter(|e| e.i < half && e.j < half) {
+        g.add_edge(e.i, e.j, e.measured, e.information).unwrap();
     }
     let mut opt = Optimizer::new(&g, 0).unwrap();
     opt.optimize(&mut g, &SolverOptions::default()).unwrap();
     for (k, p) in full.keys().iter().zip(batch.poses()).skip(half) {
         g.add_pose(*k, *p);
     }
-    for e in full.edges.iter().filter(|e| e.i >= half || e.j >= half) {
-        g.add_edge(e.i, e.j, e.measured, e.information);
+    for e in full.edges().iter().filter(|e| e.i >= half || e.j >= half) {
+        g.add_edge(e.i, e.j, e.measured, e.information).unwrap();
     }
     assert!(!opt.matches(&g));
     let s = opt.optimize(&mut g, &SolverOptions::default()).unwrap();
@@ -184,8 +184,8 @@ fn gnc_rejects_wrong_loop_closures_that_bend_the_map() {
 
     // Ten confident, wrong loop closures between far-apart poses.
     let mut spoiled = clean.clone();
-    let n_inliers = spoiled.edges.len();
-    let info = spoiled.edges[0].information;
+    let n_inliers = spoiled.edges().len();
+    let info = spoiled.edges()[0].information;
     for k in 0..10 {
         let (i, j) = (k * 7 % spoiled.len(), (k * 13 + 60) % spoiled.len());
         if i == j {
@@ -195,7 +195,7 @@ fn gnc_rejects_wrong_loop_closures_that_bend_the_map() {
             Translation3::new(5.0, -3.0, 2.0),
             UnitQuaternion::from_euler_angles(0.5, 0.2, -0.4),
         );
-        spoiled.add_edge(i, j, z, info);
+        spoiled.add_edge(i, j, z, info).unwrap();
     }
     let mut ls = spoiled.clone();
     optimize(&mut ls, 0, &SolverOptions::default()).unwrap();
@@ -279,7 +279,7 @@ fn off_diagonal_information_is_permuted_to_rotation_first() {
     else {
         panic!()
     };
-    let info = g.edges[0].information;
+    let info = g.edges()[0].information;
     assert!((info - info.transpose()).amax() < 1e-12);
     // The file's first diagonal entries are translational; ours start with rotation.
     let text = std::fs::read_to_string(data("gtsam/pose3example-offdiagonal.txt")).unwrap();

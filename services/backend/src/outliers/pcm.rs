@@ -80,7 +80,7 @@ impl Odometry {
         // (robot, index) -> (measurement to index + 1, its covariance).
         let mut steps: BTreeMap<(Option<u8>, u64), Uncertain> = BTreeMap::new();
         let keys = graph.keys();
-        for e in &graph.edges {
+        for e in graph.edges() {
             if graph.edge_class(e) != EdgeClass::Odometry {
                 continue;
             }
@@ -312,7 +312,11 @@ impl Pcm {
         };
         let mut new: BTreeMap<(Option<u8>, Option<u8>), Vec<Closure>> = BTreeMap::new();
         let mut total = 0;
-        for e in graph.edges.iter().filter(|e| graph.edge_class(e) == wanted) {
+        for e in graph
+            .edges()
+            .iter()
+            .filter(|e| graph.edge_class(e) == wanted)
+        {
             total += 1;
             let c = closure_of(keys[e.i], keys[e.j], e.measured, &e.information)?;
             // Orient every closure of a pair the same way (lower robot, then lower index first).
