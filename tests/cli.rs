@@ -155,6 +155,8 @@ fn pgo_json_has_the_documented_fields() {
         "initial_chi2",
         "final_chi2",
         "iterations",
+        "converged",
+        "stop_reason",
         "time_s",
     ] {
         assert!(v.get(k).is_some(), "missing {k}: {v}");
@@ -162,6 +164,39 @@ fn pgo_json_has_the_documented_fields() {
     assert_eq!(v["poses"], 9);
     assert_eq!(v["edges"], 11);
     assert!(v["final_chi2"].as_f64().unwrap() < v["initial_chi2"].as_f64().unwrap());
+    assert_eq!(v["converged"], true);
+    assert!(
+        v["stop_reason"].as_str().unwrap().starts_with("converged_"),
+        "{v}"
+    );
+}
+
+#[test]
+fn pgo_json_says_why_gauss_newton_stopped() {
+    // From the file's poses, GN's first step on dpgo's Intel graph raises the cost.
+    let out = doorslam(&[
+        "pgo",
+        &data("pose_graphs/dpgo/input_INTEL_g2o.g2o"),
+        "--solver",
+        "gn",
+        "--init",
+        "file",
+        "--json",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["converged"], false, "{v}");
+    assert_eq!(v["stop_reason"], "diverged", "{v}");
+    let text = doorslam(&[
+        "pgo",
+        &data("pose_graphs/dpgo/input_INTEL_g2o.g2o"),
+        "--solver",
+        "gn",
+        "--init",
+        "file",
+    ]);
+    let stdout = String::from_utf8_lossy(&text.stdout);
+    assert!(stdout.contains("raised the cost"), "{stdout}");
 }
 
 #[test]

@@ -168,6 +168,7 @@ pub fn run(args: PgoArgs) -> Result<()> {
             "final_chi2": s.final_chi2,
             "iterations": s.iterations,
             "converged": s.converged,
+            "stop_reason": s.stop_reason.as_str(),
             "time_s": outcome.time_s,
         });
         println!("{json}");
@@ -181,7 +182,11 @@ pub fn run(args: PgoArgs) -> Result<()> {
             outcome.init_chi2,
             s.final_chi2,
             s.iterations,
-            if s.converged { "" } else { " (not converged: --max-iterations reached)" },
+            if s.converged {
+                String::new()
+            } else {
+                format!(" ({})", s.stop_reason)
+            },
             outcome.time_s
         );
     }

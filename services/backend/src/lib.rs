@@ -34,4 +34,6 @@ pub use graph::{
 pub use lie::LieGroup;
 pub use linear::{LinearError, SparseCholesky};
 pub use robust::Kernel;
-pub use solver::{optimize, Method, Optimizer, SolveError, SolverOptions, Summary};
+pub use solver::{
+    optimize, Criterion, Method, Optimizer, SolveError, SolverOptions, StopReason, Summary,
+};

@@ -74,6 +74,80 @@ impl Default for SolverOptions {
     }
 }
 
+/// Which convergence test stopped a solve (the tolerances of [`SolverOptions`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Criterion {
+    /// The cost is at most `absolute_tolerance`.
+    SmallCost,
+    /// An accepted step lowered the cost by at most `relative_tolerance` of it, or by at
+    /// most `absolute_tolerance`.
+    SmallDecrease,
+    /// No step lowered the cost, but the linearized model predicted a decrease within
+    /// those same tolerances: the estimate is at a minimum to numerical precision (e.g.
+    /// re-solving an already optimized graph), and rounding decides the comparison.
+    SmallPredictedDecrease,
+}
+
+/// Why a solve stopped. Only [`StopReason::Converged`] means the estimate is a minimum.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StopReason {
+    Converged(Criterion),
+    /// `max_iterations` linearizations without meeting a convergence test.
+    MaxIterations,
+    /// Levenberg-Marquardt damped up to its limit (λ > 1e10) without finding a step that
+    /// lowers the cost, although the model predicted a decrease beyond the tolerances.
+    NoDecrease,
+    /// The step or the cost at the candidate was not finite (NaN/∞): the normal
+    /// equations are numerically singular, e.g. from indefinite information matrices.
+    NonFiniteStep,
+    /// A Gauss-Newton step raised the cost while the model predicted a decrease: the
+    /// linearization is not valid that far from the estimate (Levenberg-Marquardt would
+    /// damp the step instead).
+    Diverged,
+    /// Graduated non-convexity ran all its rounds without its weights settling to 0/1.
+    GncNotSettled,
+}
+
+impl StopReason {
+    /// Whether the solve met a convergence test.
+    pub fn is_converged(&self) -> bool {
+        matches!(self, StopReason::Converged(_))
+    }
+
+    /// A stable snake_case name, for JSON output and scripts.
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            StopReason::Converged(Criterion::SmallCost) => "converged_small_cost",
+            StopReason::Converged(Criterion::SmallDecrease) => "converged_small_decrease",
+            StopReason::Converged(Criterion::SmallPredictedDecrease) => {
+                "converged_small_predicted_decrease"
+            }
+            StopReason::MaxIterations => "max_iterations",
+            StopReason::NoDecrease => "no_decrease",
+            StopReason::NonFiniteStep => "non_finite_step",
+            StopReason::Diverged => "diverged",
+            StopReason::GncNotSettled => "gnc_not_settled",
+        }
+    }
+}
+
+impl std::fmt::Display for StopReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            StopReason::Converged(Criterion::SmallCost) => "converged (cost below the absolute tolerance)",
+            StopReason::Converged(Criterion::SmallDecrease) => "converged (decrease below the tolerance)",
+            StopReason::Converged(Criterion::SmallPredictedDecrease) => {
+                "converged (at a minimum: predicted decrease below the tolerance)"
+            }
+            StopReason::MaxIterations => "not converged: iteration limit reached",
+            StopReason::NoDecrease => "not converged: no step lowers the cost (damping limit reached)",
+            StopReason::NonFiniteStep => "not converged: non-finite step (numerically singular normal equations)",
+            StopReason::Diverged => "not converged: the Gauss-Newton step raised the cost (diverging; try Levenberg-Marquardt)",
+            StopReason::GncNotSettled => "not converged: GNC weights did not settle",
+        })
+    }
+}
+
 /// What an optimization did.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Summary {
@@ -82,7 +156,9 @@ pub struct Summary {
     pub final_chi2: f64,
     /// Linearizations (outer iterations), summed over GNC rounds.
     pub iterations: usize,
+    /// `stop_reason.is_converged()`.
     pub converged: bool,
+    pub stop_reason: StopReason,
     /// Symbolic factorizations computed (1 unless the graph's structure changed).
     pub symbolic_builds: usize,
     /// Final weight of each edge (1 without GNC; GNC's inlier weights otherwise).
@@ -308,7 +384,7 @@ impl Optimizer {
         let kernels = kernels(graph, opts);
         let initial_chi2 = graph.chi2();
         let mut weights = vec![1.0; graph.edges().len()];
-        let (iterations, converged) = match opts.loop_kernel {
+        let (iterations, stop_reason) = match opts.loop_kernel {
             Kernel::Gnc { c2 } => self.gnc(graph, opts, &kernels, &mut weights, c2)?,
             _ => self.least_squares(graph, opts, &kernels, &weights, opts.max_iterations)?,
         };
@@ -316,7 +392,8 @@ impl Optimizer {
             initial_chi2,
             final_chi2: graph.chi2(),
             iterations,
-            converged,
+            converged: stop_reason.is_converged(),
+            stop_reason,
             symbolic_builds: self.linear.symbolic_builds(),
             weights,
             time_s: start.elapsed().as_secs_f64(),
@@ -325,6 +402,8 @@ impl Optimizer {
 
     /// GNC-TLS on the loop closures: weights start near 1 (convex surrogate) and are driven
     /// to 0/1 as μ grows; each round re-solves the weighted least squares warm-started.
+    /// Converged when the weights settled and the last round's solve converged (the stop
+    /// reason is that solve's).
     fn gnc<G: LieGroup>(
         &mut self,
         graph: &mut PoseGraph<G>,
@@ -332,13 +411,14 @@ impl Optimizer {
         kernels: &[Kernel],
         weights: &mut [f64],
         c2: f64,
-    ) -> Result<(usize, bool), SolveError> {
+    ) -> Result<(usize, StopReason), SolveError> {
         let is_gnc: Vec<bool> = kernels
             .iter()
             .map(|k| matches!(k, Kernel::Gnc { .. }))
             .collect();
         let mut total = 0;
-        let (first, _) = self.least_squares(graph, opts, kernels, weights, opts.max_iterations)?;
+        let (first, reason) =
+            self.least_squares(graph, opts, kernels, weights, opts.max_iterations)?;
         total += first;
         let residuals = |graph: &PoseGraph<G>| -> Vec<f64> {
             graph.edges().iter().map(|e| graph.edge_chi2(e)).collect()
@@ -351,7 +431,7 @@ impl Optimizer {
             .map(|(s, _)| *s)
             .fold(0.0, f64::max);
         if max_s <= c2 {
-            return Ok((total, true)); // every loop closure already within the threshold
+            return Ok((total, reason)); // every loop closure already within the threshold
         }
         let mut mu = c2 / (2.0 * max_s - c2);
         for _round in 0..100 {
@@ -368,14 +448,15 @@ impl Optimizer {
                 .iter()
                 .zip(&is_gnc)
                 .all(|(w, g)| !*g || *w < 1e-9 || *w > 1.0 - 1e-9);
-            let (it, _) = self.least_squares(graph, opts, kernels, weights, opts.max_iterations)?;
+            let (it, reason) =
+                self.least_squares(graph, opts, kernels, weights, opts.max_iterations)?;
             total += it;
             if binary && changed < 1e-9 {
-                return Ok((total, true));
+                return Ok((total, reason));
             }
             mu *= 1.4;
         }
-        Ok((total, false))
+        Ok((total, StopReason::GncNotSettled))
     }
 
     /// Levenberg-Marquardt / Gauss-Newton with fixed per-edge weights and IRLS kernels.
@@ -386,7 +467,7 @@ impl Optimizer {
         kernels: &[Kernel],
         static_weights: &[f64],
         max_iterations: usize,
-    ) -> Result<(usize, bool), SolveError> {
+    ) -> Result<(usize, StopReason), SolveError> {
         let n = self.pattern.dim();
         let d = self.bdim;
         let mut values = vec![0.0; self.pattern.nnz()];
@@ -401,15 +482,22 @@ impl Optimizer {
         let mut lambda = opts.lambda_initial;
         let mut nu = 2.0;
         let lm = opts.method == Method::LevenbergMarquardt;
+        // Whether a decrease the model predicts is within the convergence tolerances.
+        let negligible = |predicted: f64, cost: f64| {
+            predicted <= opts.relative_tolerance * cost || predicted <= opts.absolute_tolerance
+        };
         for it in 0..max_iterations {
             if cost <= opts.absolute_tolerance {
-                return Ok((it, true));
+                return Ok((it, StopReason::Converged(Criterion::SmallCost)));
             }
             // IRLS: kernel weights at the current estimate times the static weights.
             for (k, e) in graph.edges().iter().enumerate() {
                 weights[k] = static_weights[k] * kernels[k].weight(graph.edge_chi2(e));
             }
             self.linearize(graph, &weights, &mut values, &mut g);
+            // The decrease predicted by this iteration's first (least damped) solve: when no
+            // step lowers the cost, it tells a minimum apart from a failure.
+            let mut first_predicted: Option<f64> = None;
             loop {
                 damped.copy_from_slice(&values);
                 if lm {
@@ -453,7 +541,10 @@ impl Optimizer {
                     predicted +=
                         lambda * (0..n).map(|i| delta[(i, 0)] * delta[(i, 0)]).sum::<f64>();
                 }
-                if new_cost.is_finite() && new_cost < cost {
+                let finite = new_cost.is_finite()
+                    && predicted.is_finite()
+                    && (0..n).all(|i| delta[(i, 0)].is_finite());
+                if finite && new_cost < cost {
                     graph.poses_mut().copy_from_slice(&candidate);
                     let decrease = cost - new_cost;
                     cost = new_cost;
@@ -462,21 +553,32 @@ impl Optimizer {
                         lambda *= (1.0f64 / 3.0).max(1.0 - (2.0 * rho - 1.0).powi(3));
                         nu = 2.0;
                     }
-                    if decrease <= opts.relative_tolerance * (cost + decrease)
-                        || decrease <= opts.absolute_tolerance
-                    {
-                        return Ok((it + 1, true));
+                    if negligible(decrease, cost + decrease) {
+                        return Ok((it + 1, StopReason::Converged(Criterion::SmallDecrease)));
                     }
                     break;
                 }
+                let first = *first_predicted.get_or_insert(predicted);
+                // No decrease with this step. At a minimum, rounding decides the comparison
+                // and the model predicted (almost) nothing: that is convergence. Otherwise
+                // GN has no fallback, and LM gives up at its damping limit.
+                let at_minimum = first.is_finite() && negligible(first, cost);
                 if !lm || lambda > 1e10 {
-                    // No step lowers the cost: at a minimum (to numerical precision).
-                    return Ok((it + 1, true));
+                    let reason = if at_minimum {
+                        StopReason::Converged(Criterion::SmallPredictedDecrease)
+                    } else if !finite {
+                        StopReason::NonFiniteStep
+                    } else if lm {
+                        StopReason::NoDecrease
+                    } else {
+                        StopReason::Diverged
+                    };
+                    return Ok((it + 1, reason));
                 }
                 lambda *= nu;
                 nu *= 2.0;
             }
         }
-        Ok((max_iterations, false))
+        Ok((max_iterations, StopReason::MaxIterations))
     }
 }

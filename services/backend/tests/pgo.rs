@@ -7,8 +7,8 @@ use std::path::PathBuf;
 use doorslam_backend::init::{self, Chordal};
 use doorslam_backend::robust::chi2_quantile;
 use doorslam_backend::{
-    optimize, read_g2o, write_g2o, Graph, Kernel, LieGroup, Method, Optimizer, PoseGraph,
-    SolverOptions, UnknownTags,
+    optimize, read_g2o, write_g2o, Criterion, Graph, Kernel, LieGroup, Method, Optimizer,
+    PoseGraph, SolverOptions, StopReason, UnknownTags,
 };
 use nalgebra::{Isometry2, Isometry3, Translation3, UnitQuaternion, Vector3};
 
@@ -17,6 +17,13 @@ fn data(rel: &str) -> PathBuf {
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from(".").join("../../../shared/data"));
     root.join("pose_graphs").join(rel)
+}
+
+fn gauss_newton() -> SolverOptions {
+    SolverOptions {
+        method: Method::GaussNewton,
+        ..Default::default()
+    }
 }
 
 fn se2(rel: &str) -> PoseGraph<Isometry2<f64>> {
@@ -205,6 +212,7 @@ fn gnc_rejects_wrong_loop_closures_that_bend_the_map() {
         ..Default::default()
     };
     let s = optimize(&mut spoiled, 0, &opts).unwrap();
+    assert!(s.converged, "GNC: {}", s.stop_reason);
     let outlier_weights = &s.weights[n_inliers..];
     assert!(
         outlier_weights.iter().all(|w| *w < 1e-6),
@@ -365,4 +373,55 @@ fn malformed_files_name_the_line() {
     };
     assert!(optimize(&mut g, 0, &SolverOptions::default()).is_err());
     let _ = Vector3::<f64>::zeros();
+}
+
+#[test]
+fn gauss_newton_divergence_is_not_reported_as_converged() {
+    // From its file's poses (dead reckoning, large drift), dpgo's Intel graph is too far
+    // from the minimum for an undamped step: Gauss-Newton's first step raises the cost.
+    let file = se2("dpgo/input_INTEL_g2o.g2o");
+    let mut gn = file.clone();
+    let s = optimize(&mut gn, 0, &gauss_newton()).unwrap();
+    assert_eq!(s.stop_reason, StopReason::Diverged);
+    assert!(!s.converged);
+    assert_eq!(s.iterations, 1);
+    // The step was rejected: the estimate is the one it started from.
+    assert_eq!(s.final_chi2, s.initial_chi2);
+    assert_eq!(gn.poses(), file.poses());
+    // Levenberg-Marquardt damps the same step and makes progress, if slowly from here.
+    let mut lm = file.clone();
+    let s = optimize(&mut lm, 0, &SolverOptions::default()).unwrap();
+    assert_ne!(s.stop_reason, StopReason::Diverged);
+    assert!(s.final_chi2 < 0.05 * s.initial_chi2, "{}", s.final_chi2);
+}
+
+#[test]
+fn re_solving_an_optimum_is_converged_and_an_iteration_limit_is_not() {
+    for opts in [SolverOptions::default(), gauss_newton()] {
+        let mut g = se3("se-sync/smallGrid3D.g2o");
+        Isometry3::chordal(&mut g, 0).unwrap();
+        let first = optimize(&mut g, 0, &opts).unwrap();
+        assert!(first.converged, "{:?}: {}", opts.method, first.stop_reason);
+        // No step gains anything any more: that is convergence, not a failure.
+        let again = optimize(&mut g, 0, &opts).unwrap();
+        assert!(
+            matches!(
+                again.stop_reason,
+                StopReason::Converged(Criterion::SmallDecrease | Criterion::SmallPredictedDecrease)
+            ),
+            "{:?}: {}",
+            opts.method,
+            again.stop_reason
+        );
+        assert!(again.final_chi2 <= first.final_chi2 * (1.0 + 1e-9));
+    }
+    let mut torus = se3("se-sync/torus3D.g2o");
+    let opts = SolverOptions {
+        max_iterations: 2,
+        ..Default::default()
+    };
+    let s = optimize(&mut torus, 0, &opts).unwrap();
+    assert_eq!(s.stop_reason, StopReason::MaxIterations);
+    assert!(!s.converged);
+    assert_eq!(s.stop_reason.as_str(), "max_iterations");
 }
