@@ -8,7 +8,8 @@ use clap::{Args, ValueEnum};
 use doorslam_backend::init::{self, Chordal};
 use doorslam_backend::robust::chi2_quantile;
 use doorslam_backend::{
-    read_g2o, write_g2o, Graph, Kernel, LieGroup, Method, PoseGraph, SolverOptions, UnknownTags,
+    key, read_g2o, write_g2o, Graph, Kernel, LieGroup, Method, PoseGraph, SolverOptions,
+    UnknownTags,
 };
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -123,6 +124,15 @@ pub fn run(args: PgoArgs) -> Result<()> {
     let mut file = read_g2o(&args.file, unknown)?;
     for w in &file.warnings {
         tracing::warn!("{w}");
+    }
+    if file.fixed.len() > 1 {
+        // The solver fixes one pose (the gauge); more would need priors it does not have.
+        tracing::warn!(
+            "{}: FIX lists {} poses; only the first, {}, is held fixed",
+            args.file.display(),
+            file.fixed.len(),
+            key::label(file.fixed[0])
+        );
     }
     let dof = match &file.graph {
         Graph::Se2(_) => <nalgebra::Isometry2<f64> as LieGroup>::DIM,

@@ -21,7 +21,7 @@ use nalgebra::{
 use crate::graph::{EdgeClass, PoseGraph};
 use crate::lie::{LieGroup, TangentMatrix};
 use crate::linear::SparseCholesky;
-use crate::solver::{var_of, SolveError};
+use crate::solver::{check_connected, var_of, SolveError};
 use crate::sparsity::BlockPattern;
 
 /// Sets every pose not marked `known` by composing edges breadth-first from `start`,
@@ -65,11 +65,13 @@ pub fn chain<G: LieGroup>(graph: &mut PoseGraph<G>, start: usize, known: &[bool]
 
 /// Re-initializes all poses but the anchor from the edges alone (odometry chain first).
 pub fn odometry<G: LieGroup>(graph: &mut PoseGraph<G>, anchor: usize) -> Result<(), SolveError> {
-    let known: Vec<bool> = (0..graph.len()).map(|p| p == anchor).collect();
-    let reached = chain(graph, anchor, &known);
-    if reached < graph.len() {
-        return Err(SolveError::Disconnected(reached));
+    if graph.is_empty() {
+        return Err(SolveError::Empty);
     }
+    // Before chaining: poses the chain cannot reach would keep stale estimates.
+    check_connected(graph, anchor)?;
+    let known: Vec<bool> = (0..graph.len()).map(|p| p == anchor).collect();
+    chain(graph, anchor, &known);
     Ok(())
 }
 
@@ -179,6 +181,9 @@ fn project_so3(m: &Matrix3<f64>) -> Matrix3<f64> {
 impl Chordal for Isometry3<f64> {
     fn chordal(graph: &mut PoseGraph<Self>, anchor: usize) -> Result<(), SolveError> {
         let n = graph.len().checked_sub(1).ok_or(SolveError::Empty)?;
+        // A part not connected to the anchor makes the linear systems singular; name it
+        // instead of failing in the Cholesky factorization.
+        check_connected(graph, anchor)?;
         let pairs: Vec<(usize, usize)> = graph.edges().iter().map(|e| (e.i, e.j)).collect();
         let w: Vec<(f64, f64)> = graph
             .edges()
@@ -257,7 +262,12 @@ impl Chordal for Isometry3<f64> {
         let taus: Vec<f64> = w.iter().map(|(_, t)| *t).collect();
         let anchor_t = graph.poses()[anchor].translation.vector;
         let t = solve_translations(&pairs, &taus, &rotated, graph.len(), anchor, anchor_t)?;
+        // The anchor keeps its pose exactly (a matrix-quaternion round trip would move it
+        // by rounding, and the solver holds it where it is).
         for (p, pose) in graph.poses_mut().iter_mut().enumerate() {
+            if p == anchor {
+                continue;
+            }
             let q = UnitQuaternion::from_rotation_matrix(
                 &nalgebra::Rotation3::from_matrix_unchecked(rotations[p]),
             );
@@ -270,6 +280,9 @@ impl Chordal for Isometry3<f64> {
 impl Chordal for Isometry2<f64> {
     fn chordal(graph: &mut PoseGraph<Self>, anchor: usize) -> Result<(), SolveError> {
         let n = graph.len().checked_sub(1).ok_or(SolveError::Empty)?;
+        // A part not connected to the anchor makes the linear systems singular; name it
+        // instead of failing in the Cholesky factorization.
+        check_connected(graph, anchor)?;
         let pairs: Vec<(usize, usize)> = graph.edges().iter().map(|e| (e.i, e.j)).collect();
         let w: Vec<(f64, f64)> = graph
             .edges()
@@ -359,6 +372,9 @@ impl Chordal for Isometry2<f64> {
             Vector3::new(at.x, at.y, 0.0),
         )?;
         for (p, pose) in graph.poses_mut().iter_mut().enumerate() {
+            if p == anchor {
+                continue;
+            }
             *pose = Isometry2::from_parts(Translation2::new(t[p].x, t[p].y), angles[p]);
         }
         Ok(())

@@ -14,11 +14,14 @@ use std::time::Instant;
 
 use faer::Mat;
 
-use crate::graph::{between_linearized, between_residual, EdgeClass, PoseGraph};
+use crate::graph::{between_linearized, between_residual, key, EdgeClass, PoseGraph};
 use crate::lie::{LieGroup, Tangent, TangentMatrix};
 use crate::linear::{LinearError, SparseCholesky};
 use crate::robust::{gnc_tls_weight, Kernel};
 use crate::sparsity::{BlockPattern, DiagonalSlot, OffDiagonalSlot};
+
+/// How many poses a [`SolveError::Disconnected`] names.
+const DISCONNECTED_SHOWN: usize = 10;
 
 /// Failures of the optimizer.
 #[derive(Debug, thiserror::Error)]
@@ -27,12 +30,38 @@ pub enum SolveError {
     Empty,
     #[error("anchor pose index {0} is out of range")]
     Anchor(usize),
-    #[error("pose {0} is not connected to the anchor: the problem is not fully constrained")]
-    Disconnected(usize),
+    #[error("{}", disconnected_message(.anchor, *.count, .first))]
+    Disconnected {
+        /// Label of the anchor pose ([`crate::graph::key::label`]).
+        anchor: String,
+        /// How many poses no chain of edges connects to the anchor.
+        count: usize,
+        /// Labels of the first of them (at most 10), in index order.
+        first: Vec<String>,
+    },
     #[error(transparent)]
     Linear(#[from] LinearError),
+    #[error(
+        "the normal equations are not positive definite ({0}) although every pose is connected to \
+         the anchor: an information matrix is indefinite or singular (Levenberg-Marquardt damps \
+         this, Gauss-Newton cannot)"
+    )]
+    NotPositiveDefinite(String),
     #[error("non-finite cost after linearization (a NaN in the graph?)")]
     NonFinite,
+}
+
+fn disconnected_message(anchor: &str, count: usize, first: &[String]) -> String {
+    let more = match count.saturating_sub(first.len()) {
+        0 => String::new(),
+        n => format!(" and {n} more"),
+    };
+    format!(
+        "{count} pose{} not connected to the anchor {anchor} by any chain of edges ({}{more}): \
+         the problem is not fully constrained (add edges, or optimize each part separately)",
+        if count == 1 { " is" } else { "s are" },
+        first.join(", ")
+    )
 }
 
 /// Gauss-Newton or Levenberg-Marquardt.
@@ -320,11 +349,31 @@ fn add_gradient(g: &mut [f64], var: usize, d: usize, v: &Tangent) {
     }
 }
 
-fn check_connected<G: LieGroup>(graph: &PoseGraph<G>, anchor: usize) -> Result<(), SolveError> {
-    match graph.reachable_from(anchor).iter().position(|s| !s) {
-        Some(p) => Err(SolveError::Disconnected(p)),
-        None => Ok(()),
+/// Fails with [`SolveError::Disconnected`] naming the poses no chain of edges connects to
+/// `anchor`: their normal equations are singular (gauge freedom per component), which the
+/// Cholesky factorization would report only as "not positive definite".
+pub(crate) fn check_connected<G: LieGroup>(
+    graph: &PoseGraph<G>,
+    anchor: usize,
+) -> Result<(), SolveError> {
+    if anchor >= graph.len() {
+        return Err(SolveError::Anchor(anchor));
     }
+    let reached = graph.reachable_from(anchor);
+    let mut missing = reached.iter().enumerate().filter(|(_, r)| !**r);
+    let first: Vec<String> = missing
+        .by_ref()
+        .take(DISCONNECTED_SHOWN)
+        .map(|(p, _)| key::label(graph.keys()[p]))
+        .collect();
+    if first.is_empty() {
+        return Ok(());
+    }
+    Err(SolveError::Disconnected {
+        anchor: key::label(graph.keys()[anchor]),
+        count: first.len() + missing.count(),
+        first,
+    })
 }
 
 /// Kernel of each edge from its class.
@@ -515,6 +564,10 @@ impl Optimizer {
                         lambda *= nu;
                         nu *= 2.0;
                         continue;
+                    }
+                    // Connectivity was checked: the gauge is fixed, so the cause is in Ω.
+                    Err(LinearError::NotPositiveDefinite(detail)) => {
+                        return Err(SolveError::NotPositiveDefinite(detail))
                     }
                     Err(e) => return Err(e.into()),
                 }

@@ -4,11 +4,13 @@
 // compile-time CARGO_MANIFEST_DIR goes stale when one target dir serves several clones).
 use std::path::PathBuf;
 
+use doorslam_backend::g2o::parse_g2o;
 use doorslam_backend::init::{self, Chordal};
+use doorslam_backend::lie::TangentMatrix;
 use doorslam_backend::robust::chi2_quantile;
 use doorslam_backend::{
-    optimize, read_g2o, write_g2o, Criterion, Graph, Kernel, LieGroup, Method, Optimizer,
-    PoseGraph, SolverOptions, StopReason, UnknownTags,
+    key, optimize, read_g2o, write_g2o, Criterion, Graph, Kernel, LieGroup, Method, Optimizer,
+    PoseGraph, SolveError, SolverOptions, StopReason, UnknownTags,
 };
 use nalgebra::{Isometry2, Isometry3, Translation3, UnitQuaternion, Vector3};
 
@@ -424,4 +426,110 @@ fn re_solving_an_optimum_is_converged_and_an_iteration_limit_is_not() {
     assert_eq!(s.stop_reason, StopReason::MaxIterations);
     assert!(!s.converged);
     assert_eq!(s.stop_reason.as_str(), "max_iterations");
+}
+
+#[test]
+fn a_disconnected_graph_names_the_poses_not_connected_to_the_anchor() {
+    // Robots a and b, 13 poses each, each with its own odometry and nothing between them.
+    let mut g = PoseGraph::<Isometry3<f64>>::new();
+    for robot in 0..2u8 {
+        for k in 0..13u64 {
+            let p = Isometry3::translation(k as f64, f64::from(robot), 0.0);
+            g.add_pose(key::symbol(robot, k), p);
+        }
+    }
+    for base in [0, 13] {
+        for k in 0..12 {
+            let z = Isometry3::translation(1.0, 0.0, 0.0);
+            g.add_edge(base + k, base + k + 1, z, TangentMatrix::identity())
+                .unwrap();
+        }
+    }
+    let check = |what: &str, r: Result<(), SolveError>| {
+        let err = r.unwrap_err();
+        let text = err.to_string();
+        match err {
+            SolveError::Disconnected {
+                anchor,
+                count,
+                first,
+            } => {
+                assert_eq!(anchor, "a0", "{what}");
+                assert_eq!(count, 13, "{what}");
+                let want: Vec<String> = (0..10).map(|k| format!("b{k}")).collect();
+                assert_eq!(first, want, "{what}");
+            }
+            other => panic!("{what}: {other}"),
+        }
+        assert!(
+            text.contains("13 poses are not connected to the anchor a0")
+                && text.contains("b0, b1, b2")
+                && text.contains("and 3 more"),
+            "{what}: {text}"
+        );
+        assert!(!text.contains("Cholesky"), "{what}: {text}");
+    };
+    // Every entry point that factorizes names the problem before it would fail there.
+    check(
+        "optimize",
+        optimize(&mut g.clone(), 0, &SolverOptions::default()).map(|_| ()),
+    );
+    check("chordal", Isometry3::chordal(&mut g.clone(), 0));
+    check("odometry", init::odometry(&mut g.clone(), 0));
+    check("Optimizer::new", Optimizer::new(&g, 0).map(|_| ()));
+    // Anchored in b, robot a is the disconnected part.
+    let err = optimize(&mut g.clone(), 20, &SolverOptions::default()).unwrap_err();
+    assert!(
+        err.to_string().contains("anchor b7") && err.to_string().contains("a0, a1"),
+        "{err}"
+    );
+    // Planar graphs too.
+    let Graph::Se2(mut lonely) = parse_g2o(
+        "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\n",
+        "lonely.g2o",
+        UnknownTags::Error,
+    )
+    .unwrap()
+    .graph
+    else {
+        panic!()
+    };
+    let err = Isometry2::chordal(&mut lonely, 0).unwrap_err().to_string();
+    assert!(
+        err.contains("1 pose is not connected to the anchor 0 "),
+        "{err}"
+    );
+}
+
+#[test]
+fn a_fix_line_anchors_that_pose_exactly() {
+    let text = std::fs::read_to_string(data("se-sync/tinyGrid3D.g2o")).unwrap() + "FIX 4\n";
+    let file = parse_g2o(&text, "fixed.g2o", UnknownTags::Error).unwrap();
+    assert_eq!(file.fixed, vec![4]);
+    let Graph::Se3(g) = file.graph else {
+        panic!("3-D expected")
+    };
+    let anchor = g.index_of(4).unwrap();
+    let held = g.poses()[anchor];
+    let mut reference = g.clone();
+    Isometry3::chordal(&mut reference, 0).unwrap();
+    let reference = optimize(&mut reference, 0, &SolverOptions::default()).unwrap();
+    for chordal in [false, true] {
+        let mut h = g.clone();
+        if chordal {
+            Isometry3::chordal(&mut h, anchor).unwrap();
+            assert_eq!(h.poses()[anchor], held, "chordal moved the anchor");
+        }
+        let s = optimize(&mut h, anchor, &SolverOptions::default()).unwrap();
+        assert!(s.converged, "{}", s.stop_reason);
+        assert_eq!(h.poses()[anchor], held, "the solver moved the anchor");
+        assert_local_minimum(&h, anchor);
+        // The cost does not depend on which pose fixes the gauge.
+        assert!(
+            (s.final_chi2 - reference.final_chi2).abs() < 1e-4 * reference.final_chi2,
+            "{} vs {}",
+            s.final_chi2,
+            reference.final_chi2
+        );
+    }
 }
