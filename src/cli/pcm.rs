@@ -7,8 +7,13 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use doorslam_backend::outliers::{Pcm, Scope};
-use doorslam_backend::{key, read_g2o, write_g2o, EdgeClass, Graph, PoseGraph, UnknownTags};
+use doorslam_backend::{
+    key, read_g2o_with, write_g2o, EdgeClass, Graph, InformationCheck, PoseGraph, ReadOptions,
+    UnknownTags,
+};
 use nalgebra::Isometry3;
+
+use super::pgo::InformationArg;
 
 #[derive(Debug, Args)]
 pub struct PcmArgs {
@@ -35,6 +40,11 @@ pub struct PcmArgs {
     /// Skip lines with unknown tags (with a warning) instead of failing.
     #[arg(long)]
     pub skip_unknown: bool,
+    /// Information matrices that are not positive definite: refuse the file (check), use
+    /// them as written (as-is: PCM then fails on a candidate or odometry edge that has one,
+    /// as it needs covariances) or repair them (nearest-pd).
+    #[arg(long, value_enum, default_value_t = InformationArg::Check)]
+    pub information: InformationArg,
     /// Write the merged graph with the rejected closures removed.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -53,7 +63,13 @@ fn merge(args: &PcmArgs) -> Result<PoseGraph<Isometry3<f64>>> {
     let mut merged = PoseGraph::new();
     let mut seen_edges = BTreeSet::new();
     for path in &args.files {
-        let file = read_g2o(path, unknown)?;
+        let file = read_g2o_with(
+            path,
+            ReadOptions {
+                unknown,
+                information: args.information.into(),
+            },
+        )?;
         for w in &file.warnings {
             tracing::warn!("{w}");
         }
@@ -65,6 +81,11 @@ fn merge(args: &PcmArgs) -> Result<PoseGraph<Isometry3<f64>>> {
                 merged.add_pose(k, *p);
             }
         }
+        // The reader checked every matrix under the chosen policy; as-is ones stay as-is.
+        let check = match args.information {
+            InformationArg::AsIs => InformationCheck::AsIs,
+            _ => InformationCheck::PositiveDefinite,
+        };
         for e in g.edges() {
             let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
             let q = e.measured.rotation.coords;
@@ -76,7 +97,7 @@ fn merge(args: &PcmArgs) -> Result<PoseGraph<Isometry3<f64>>> {
                     merged.index_of(b).unwrap_or_default(),
                 );
                 merged
-                    .add_edge(i, j, e.measured, e.information)
+                    .add_edge_with(i, j, e.measured, e.information, check)
                     .with_context(|| format!("merging {}", path.display()))?;
             }
         }

@@ -139,6 +139,42 @@ pub fn check_information(
     Ok(())
 }
 
+/// Eigenvalues of a repaired matrix are at least this fraction of its largest one: small
+/// enough to stay close to the original, large enough for the condition number (1e8) to
+/// leave the Cholesky factorization well defined.
+pub const NEAREST_PD_FLOOR: f64 = 1e-8;
+
+/// The nearest positive-definite matrix to the (symmetrized) leading `dim × dim` block:
+/// symmetric eigen-decomposition with the eigenvalues clamped to [`NEAREST_PD_FLOOR`]
+/// times the largest magnitude (the Frobenius-nearest PSD matrix clamps to 0, which is not
+/// definite). The padding is zeroed. `None` if an entry is not finite or all are zero: then
+/// there is no scale to repair towards.
+pub fn nearest_positive_definite(information: &TangentMatrix, dim: usize) -> Option<TangentMatrix> {
+    let dim = dim.min(6);
+    let block = information.view((0, 0), (dim, dim)).into_owned();
+    if block.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    let sym = (&block + block.transpose()) * 0.5;
+    let eig = sym.symmetric_eigen();
+    let largest = eig.eigenvalues.amax();
+    if largest <= 0.0 {
+        return None;
+    }
+    let floor = NEAREST_PD_FLOOR * largest;
+    let clamped = eig.eigenvalues.map(|l| l.max(floor));
+    let v = &eig.eigenvectors;
+    let repaired = v * nalgebra::DMatrix::from_diagonal(&clamped) * v.transpose();
+    let mut out = TangentMatrix::zeros();
+    for c in 0..dim {
+        for r in 0..dim {
+            // Average the mirror entries: the product is symmetric only to rounding.
+            out[(r, c)] = 0.5 * (repaired[(r, c)] + repaired[(c, r)]);
+        }
+    }
+    Some(out)
+}
+
 /// Why [`PoseGraph::add_edge`] refused an edge; nothing was added.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum EdgeError {

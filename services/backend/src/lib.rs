@@ -26,7 +26,10 @@ pub mod service;
 pub mod solver;
 pub mod sparsity;
 
-pub use g2o::{read_g2o, write_g2o, G2oFile, Graph, GraphError, UnknownTags};
+pub use g2o::{
+    read_g2o, read_g2o_with, write_g2o, G2oFile, Graph, GraphError, InformationPolicy, ReadOptions,
+    UnknownTags,
+};
 pub use graph::{
     check_information, key, BetweenFactor, EdgeClass, EdgeError, InformationCheck,
     InformationError, PoseGraph,

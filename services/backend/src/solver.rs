@@ -135,6 +135,11 @@ pub enum StopReason {
     Diverged,
     /// Graduated non-convexity ran all its rounds without its weights settling to 0/1.
     GncNotSettled,
+    /// The cost is below zero: some information matrices are indefinite (used as written,
+    /// [`crate::graph::InformationCheck::AsIs`]), so the objective is not a sum of squares
+    /// and may decrease without bound. Stopped there: no estimate beyond is more
+    /// meaningful (repair the matrices instead, e.g. `--information nearest-pd`).
+    NegativeCost,
 }
 
 impl StopReason {
@@ -156,6 +161,7 @@ impl StopReason {
             StopReason::NonFiniteStep => "non_finite_step",
             StopReason::Diverged => "diverged",
             StopReason::GncNotSettled => "gnc_not_settled",
+            StopReason::NegativeCost => "negative_cost",
         }
     }
 }
@@ -173,6 +179,7 @@ impl std::fmt::Display for StopReason {
             StopReason::NonFiniteStep => "not converged: non-finite step (numerically singular normal equations)",
             StopReason::Diverged => "not converged: the Gauss-Newton step raised the cost (diverging; try Levenberg-Marquardt)",
             StopReason::GncNotSettled => "not converged: GNC weights did not settle",
+            StopReason::NegativeCost => "not converged: the cost fell below zero (indefinite information matrices: the objective may be unbounded below)",
         })
     }
 }
@@ -536,6 +543,11 @@ impl Optimizer {
             predicted <= opts.relative_tolerance * cost || predicted <= opts.absolute_tolerance
         };
         for it in 0..max_iterations {
+            // A sum of squares cannot go below zero; this one can, so it has no minimum to
+            // converge to (and "below the tolerance" would be true of any negative value).
+            if cost < 0.0 {
+                return Ok((it, StopReason::NegativeCost));
+            }
             if cost <= opts.absolute_tolerance {
                 return Ok((it, StopReason::Converged(Criterion::SmallCost)));
             }
@@ -605,6 +617,9 @@ impl Optimizer {
                         let rho = decrease / predicted.max(f64::MIN_POSITIVE);
                         lambda *= (1.0f64 / 3.0).max(1.0 - (2.0 * rho - 1.0).powi(3));
                         nu = 2.0;
+                    }
+                    if cost < 0.0 {
+                        return Ok((it + 1, StopReason::NegativeCost));
                     }
                     if negligible(decrease, cost + decrease) {
                         return Ok((it + 1, StopReason::Converged(Criterion::SmallDecrease)));

@@ -6,6 +6,7 @@
 use std::path::PathBuf;
 
 use doorslam_backend::g2o::parse_g2o;
+use doorslam_backend::graph::nearest_positive_definite;
 use doorslam_backend::lie::TangentMatrix;
 use doorslam_backend::sparsity::BlockPattern;
 use doorslam_backend::{
@@ -172,6 +173,27 @@ fn the_g2o_reader_applies_the_same_information_rule() {
             "{upper:?}"
         );
     }
+}
+
+#[test]
+fn nearest_positive_definite_repairs_and_keeps_definite_matrices() {
+    let repaired = nearest_positive_definite(&indefinite(), 6).unwrap();
+    assert_eq!(
+        check_information(&repaired, 6, InformationCheck::PositiveDefinite),
+        Ok(())
+    );
+    // The eigenvalues 3 and -1 of the 2 × 2 block become 3 and the floor: the positive
+    // part is kept.
+    let eig = repaired.symmetric_eigen().eigenvalues;
+    assert!((eig.max() - 3.0).abs() < 1e-12, "{eig}");
+    assert!(eig.min() > 0.0 && eig.min() < 1e-6, "{eig}");
+    // A definite matrix comes back unchanged (to rounding).
+    let mut pd = TangentMatrix::identity() * 10.0;
+    pd[(2, 5)] = 1.0;
+    pd[(5, 2)] = 1.0;
+    let same = nearest_positive_definite(&pd, 6).unwrap();
+    assert!((same - pd).amax() < 1e-12);
+    assert!(nearest_positive_definite(&TangentMatrix::zeros(), 6).is_none());
 }
 
 #[test]

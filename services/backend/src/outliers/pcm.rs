@@ -34,7 +34,10 @@ pub enum PcmError {
     Threshold(f64),
     #[error("no candidate closures: {0}")]
     NoCandidates(String),
-    #[error("information matrix of the edge {a} -> {b} is not invertible")]
+    #[error(
+        "information matrix of the edge {a} -> {b} is not positive definite: PCM needs its \
+         inverse as a covariance (read the file with --information nearest-pd to repair it)"
+    )]
     Covariance { a: String, b: String },
 }
 
