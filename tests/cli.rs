@@ -333,6 +333,7 @@ fn pcm_keeps_the_inliers_of_the_4_robot_benchmark() {
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     for k in [
         "closures",
+        "duplicates",
         "consistent_pairs",
         "inliers",
         "clique_size",
@@ -342,6 +343,9 @@ fn pcm_keeps_the_inliers_of_the_4_robot_benchmark() {
         assert!(v.get(k).is_some(), "missing {k}: {v}");
     }
     assert_eq!(v["closures"], 48);
+    // The files share their inter-robot edges; the merge keeps each once, so PCM sees no
+    // retransmitted copies.
+    assert_eq!(v["duplicates"], 0);
     assert_eq!(v["clique_size"], 24);
     assert_eq!(v["inliers"].as_array().unwrap().len(), 24);
     assert_eq!(v["exact"], true);

@@ -141,8 +141,13 @@ pub fn run(args: PcmArgs) -> Result<()> {
         };
         let mut filtered = graph.clone();
         let keys = graph.keys().to_vec();
+        // One copy of a retransmitted closure: the others would count the measurement twice.
+        let duplicates: BTreeSet<usize> = s.duplicates.iter().copied().collect();
+        let mut n = 0;
         filtered.retain_edges(|e| {
-            graph.edge_class(e) != candidate || keep.contains(&(keys[e.i], keys[e.j]))
+            n += 1;
+            !duplicates.contains(&(n - 1))
+                && (graph.edge_class(e) != candidate || keep.contains(&(keys[e.i], keys[e.j])))
         });
         write_g2o(&Graph::Se3(filtered), out)?;
     }
@@ -152,6 +157,7 @@ pub fn run(args: PcmArgs) -> Result<()> {
             "{}",
             serde_json::json!({
                 "closures": s.closures,
+                "duplicates": s.duplicates.len(),
                 "consistent_pairs": s.consistent_pairs,
                 "inliers": inliers,
                 "clique_size": s.clique_size,
@@ -161,8 +167,12 @@ pub fn run(args: PcmArgs) -> Result<()> {
         );
     } else {
         println!(
-            "{names}: {} candidate closures, {} consistent pairs, kept {} ({}), {:.4} s",
+            "{names}: {} candidate closures{}, {} consistent pairs, kept {} ({}), {:.4} s",
             s.closures,
+            match s.duplicates.len() {
+                0 => String::new(),
+                n => format!(" ({n} duplicate copies ignored)"),
+            },
             s.consistent_pairs,
             s.clique_size,
             if s.exact {
