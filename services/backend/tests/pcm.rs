@@ -6,8 +6,15 @@
 use std::collections::BTreeSet;
 use std::path::PathBuf;
 
-use doorslam_backend::outliers::{pairwise_mahalanobis2, Closure, Odometry, Pcm, PcmError, Scope};
-use doorslam_backend::{key, read_g2o, BetweenFactor, Graph, LieGroup, PoseGraph, UnknownTags};
+use doorslam_backend::graph::between_residual;
+use doorslam_backend::init::Chordal;
+use doorslam_backend::outliers::{
+    pairwise_mahalanobis2, readmit, Closure, Odometry, Pcm, PcmError, Scope,
+};
+use doorslam_backend::robust::chi2_quantile;
+use doorslam_backend::{
+    key, optimize, read_g2o, BetweenFactor, Graph, LieGroup, PoseGraph, SolverOptions, UnknownTags,
+};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
 fn folder(rel: &str) -> PathBuf {
@@ -288,4 +295,45 @@ fn a_copy_in_a_later_batch_does_not_confirm_a_closure() {
     let s = pcm.run(&g).unwrap();
     assert_eq!(s.duplicates, vec![reversed, exact]);
     assert_eq!((s.closures, s.inliers.len()), (1, 0));
+}
+
+#[test]
+fn readmit_takes_back_an_inlier_and_not_an_outlier() {
+    let clean = load("clean/example_2robots", 2);
+    let inter = inter_edges(&clean);
+    // The estimate built without one of the real closures, as if PCM had rejected it.
+    let left_out = clean.edges()[inter[3]].clone();
+    let mut rest: Vec<usize> = inter.clone();
+    rest.remove(3);
+    let mut estimate = with_closures(&clean, &rest);
+    Isometry3::chordal(&mut estimate, 0).unwrap();
+    assert!(
+        optimize(&mut estimate, 0, &SolverOptions::default())
+            .unwrap()
+            .converged
+    );
+    let outlier = BetweenFactor {
+        measured: wrong(&left_out),
+        ..left_out.clone()
+    };
+    let keys = clean.keys();
+    let (a, b) = (keys[left_out.i], keys[left_out.j]);
+    let gamma = chi2_quantile(0.99, 6).unwrap();
+    let candidates = [
+        (a, b, &outlier),
+        (a, b, &left_out),
+        // A pose the estimate does not have cannot be checked: not re-admitted.
+        (key::symbol(0, 1_000_000), b, &left_out),
+    ];
+    assert_eq!(readmit(&estimate, &candidates, gamma), vec![1]);
+    // The test is the closure's own residual against γ, inclusive.
+    let r = between_residual(
+        &estimate.poses()[left_out.i],
+        &estimate.poses()[left_out.j],
+        &left_out.measured,
+    );
+    let own = r.dot(&(left_out.information * r));
+    assert!(own < gamma, "{own}");
+    assert_eq!(readmit(&estimate, &candidates, own), vec![1]);
+    assert!(readmit(&estimate, &candidates, own * 0.999).is_empty());
 }
