@@ -209,6 +209,10 @@ fn pgo_json_has_the_documented_fields() {
         "initial_chi2",
         "final_chi2",
         "iterations",
+        "converged",
+        "stop_reason",
+        "not_positive_definite_edges",
+        "repaired_edges",
         "time_s",
     ] {
         assert!(v.get(k).is_some(), "missing {k}: {v}");
@@ -216,6 +220,77 @@ fn pgo_json_has_the_documented_fields() {
     assert_eq!(v["poses"], 9);
     assert_eq!(v["edges"], 11);
     assert!(v["final_chi2"].as_f64().unwrap() < v["initial_chi2"].as_f64().unwrap());
+    assert_eq!(v["converged"], true);
+    assert!(
+        v["stop_reason"].as_str().unwrap().starts_with("converged_"),
+        "{v}"
+    );
+    assert_eq!(v["repaired_edges"], 0);
+}
+
+#[test]
+fn pgo_json_says_why_gauss_newton_stopped() {
+    // From the file's poses, GN's first step on dpgo's Intel graph raises the cost.
+    let out = doorslam(&[
+        "pgo",
+        &data("pose_graphs/dpgo/input_INTEL_g2o.g2o"),
+        "--solver",
+        "gn",
+        "--init",
+        "file",
+        "--json",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["converged"], false, "{v}");
+    assert_eq!(v["stop_reason"], "diverged", "{v}");
+    let text = doorslam(&[
+        "pgo",
+        &data("pose_graphs/dpgo/input_INTEL_g2o.g2o"),
+        "--solver",
+        "gn",
+        "--init",
+        "file",
+    ]);
+    let stdout = String::from_utf8_lossy(&text.stdout);
+    assert!(stdout.contains("raised the cost"), "{stdout}");
+}
+
+#[test]
+fn pgo_loads_cubicle_only_with_an_explicit_information_choice() {
+    let cubicle = "./../shared/acceptance/pose_graphs/se-sync/cubicle.g2o";
+    let out = doorslam(&["pgo", cubicle]);
+    assert!(!out.status.success());
+    let err = stderr(&out);
+    for want in [
+        "cubicle.g2o:",
+        "5021 of 16869 edges",
+        "--information as-is",
+        "--information nearest-pd",
+    ] {
+        assert!(err.contains(want), "{want:?} missing: {err}");
+    }
+    let out = doorslam(&["pgo", cubicle, "--information", "nearest-pd", "--json"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["repaired_edges"], 5021, "{v}");
+    assert_eq!(v["not_positive_definite_edges"], 5021, "{v}");
+    assert_eq!(v["converged"], true, "{v}");
+    let final_chi2 = v["final_chi2"].as_f64().unwrap();
+    assert!(final_chi2 > 0.0 && final_chi2 < v["initial_chi2"].as_f64().unwrap());
+    // As written the objective is unbounded below: reported, not called converged.
+    let out = doorslam(&["pgo", cubicle, "--information", "as-is", "--json"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["repaired_edges"], 0, "{v}");
+    assert_eq!(v["not_positive_definite_edges"], 5021, "{v}");
+    assert_eq!(v["stop_reason"], "negative_cost", "{v}");
+    assert_eq!(v["converged"], false, "{v}");
+    let err = stderr(&doorslam(&["pgo", cubicle, "--information", "sometimes"]));
+    assert!(
+        err.contains("check") && err.contains("as-is") && err.contains("nearest-pd"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -312,6 +387,7 @@ fn pcm_keeps_the_inliers_of_the_4_robot_benchmark() {
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     for k in [
         "closures",
+        "duplicates",
         "consistent_pairs",
         "inliers",
         "clique_size",
@@ -321,6 +397,9 @@ fn pcm_keeps_the_inliers_of_the_4_robot_benchmark() {
         assert!(v.get(k).is_some(), "missing {k}: {v}");
     }
     assert_eq!(v["closures"], 48);
+    // The files share their inter-robot edges; the merge keeps each once, so PCM sees no
+    // retransmitted copies.
+    assert_eq!(v["duplicates"], 0);
     assert_eq!(v["clique_size"], 24);
     assert_eq!(v["inliers"].as_array().unwrap().len(), 24);
     assert_eq!(v["exact"], true);
@@ -331,6 +410,56 @@ fn pcm_keeps_the_inliers_of_the_4_robot_benchmark() {
         .filter(|l| l.starts_with("EDGE_SE3:QUAT"))
         .count();
     assert_eq!(edges, 4 * 20 + 24);
+}
+
+#[test]
+fn pcm_reads_indefinite_information_only_when_told_how() {
+    // The clean 2-robot benchmark with one odometry information matrix made indefinite.
+    let dir = data("outliers/pcm_simulation/clean/example_2robots");
+    let tmp = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(format!("{dir}/0.g2o")).unwrap();
+    let mut spoiled = false;
+    let lines: Vec<String> = text
+        .lines()
+        .map(|l| {
+            if spoiled || !l.starts_with("EDGE_SE3:QUAT") {
+                return l.to_string();
+            }
+            spoiled = true;
+            let mut f: Vec<String> = l.split_whitespace().map(String::from).collect();
+            // Upper-triangle entry (x, y), after the tag, two ids and 7 pose numbers.
+            f[11] = "1e6".into();
+            f.join(" ")
+        })
+        .collect();
+    let bad = tmp.path().join("0.g2o");
+    std::fs::write(&bad, lines.join("\n") + "\n").unwrap();
+    let other = format!("{dir}/1.g2o");
+    let run = |extra: &[&str]| {
+        let mut args = vec![
+            "pcm",
+            bad.to_str().unwrap(),
+            other.as_str(),
+            "--skip-unknown",
+        ];
+        args.extend(extra);
+        doorslam(&args)
+    };
+    let err = stderr(&run(&[]));
+    assert!(
+        err.contains("1 of") && err.contains("--information nearest-pd"),
+        "{err}"
+    );
+    // As written, PCM cannot invert it into a covariance: it says so and how to repair.
+    let err = stderr(&run(&["--information", "as-is"]));
+    assert!(
+        err.contains("not positive definite") && err.contains("nearest-pd"),
+        "{err}"
+    );
+    let out = run(&["--information", "nearest-pd", "--json"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["clique_size"], 10, "{v}");
 }
 
 #[test]

@@ -446,7 +446,7 @@ fn written_files_read_back() {
         panic!("an SE(3) graph")
     };
     assert_eq!(graph.len(), team.graph.len());
-    assert_eq!(graph.edges.len(), team.graph.edges.len());
+    assert_eq!(graph.edges().len(), team.graph.edges().len());
     assert_eq!(graph.keys(), team.graph.keys());
     for (robot, poses) in team.truth.iter().enumerate() {
         let kitti = read_kitti(dir.join(truth_file_name(robot, "txt"))).unwrap();

@@ -6,8 +6,13 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use doorslam_backend::outliers::{Pcm, Scope};
-use doorslam_backend::{key, read_g2o, write_g2o, EdgeClass, Graph, PoseGraph, UnknownTags};
+use doorslam_backend::{
+    key, read_g2o_with, write_g2o, EdgeClass, Graph, InformationCheck, PoseGraph, ReadOptions,
+    UnknownTags,
+};
 use nalgebra::Isometry3;
+
+use super::pgo::InformationArg;
 
 #[derive(Debug, Args)]
 pub struct PcmArgs {
@@ -34,6 +39,11 @@ pub struct PcmArgs {
     /// Skip lines with unknown tags (with a warning) instead of failing.
     #[arg(long)]
     pub skip_unknown: bool,
+    /// Information matrices that are not positive definite: refuse the file (check), use
+    /// them as written (as-is: PCM then fails on a candidate or odometry edge that has one,
+    /// as it needs covariances) or repair them (nearest-pd).
+    #[arg(long, value_enum, default_value_t = InformationArg::Check)]
+    pub information: InformationArg,
     /// Write the merged graph with the rejected closures removed.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -52,7 +62,13 @@ fn merge(args: &PcmArgs) -> Result<PoseGraph<Isometry3<f64>>> {
     let mut merged = PoseGraph::new();
     let mut seen_edges = BTreeSet::new();
     for path in &args.files {
-        let file = read_g2o(path, unknown)?;
+        let file = read_g2o_with(
+            path,
+            ReadOptions {
+                unknown,
+                information: args.information.into(),
+            },
+        )?;
         for w in &file.warnings {
             tracing::warn!("{w}");
         }
@@ -64,7 +80,12 @@ fn merge(args: &PcmArgs) -> Result<PoseGraph<Isometry3<f64>>> {
                 merged.add_pose(k, *p);
             }
         }
-        for e in &g.edges {
+        // The reader checked every matrix under the chosen policy; as-is ones stay as-is.
+        let check = match args.information {
+            InformationArg::AsIs => InformationCheck::AsIs,
+            _ => InformationCheck::PositiveDefinite,
+        };
+        for e in g.edges() {
             let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
             let q = e.measured.rotation.coords;
             let t = e.measured.translation.vector;
@@ -74,7 +95,9 @@ fn merge(args: &PcmArgs) -> Result<PoseGraph<Isometry3<f64>>> {
                     merged.index_of(a).unwrap_or_default(),
                     merged.index_of(b).unwrap_or_default(),
                 );
-                merged.add_edge(i, j, e.measured, e.information);
+                merged
+                    .add_edge_with(i, j, e.measured, e.information, check)
+                    .with_context(|| format!("merging {}", path.display()))?;
             }
         }
     }
@@ -113,9 +136,14 @@ pub fn run(args: PcmArgs) -> Result<()> {
         };
         let mut filtered = graph.clone();
         let keys = graph.keys().to_vec();
-        filtered
-            .edges
-            .retain(|e| graph.edge_class(e) != candidate || keep.contains(&(keys[e.i], keys[e.j])));
+        // One copy of a retransmitted closure: the others would count the measurement twice.
+        let duplicates: BTreeSet<usize> = s.duplicates.iter().copied().collect();
+        let mut n = 0;
+        filtered.retain_edges(|e| {
+            n += 1;
+            !duplicates.contains(&(n - 1))
+                && (graph.edge_class(e) != candidate || keep.contains(&(keys[e.i], keys[e.j])))
+        });
         write_g2o(&Graph::Se3(filtered), out)?;
     }
     if args.json {
@@ -124,6 +152,7 @@ pub fn run(args: PcmArgs) -> Result<()> {
             "{}",
             serde_json::json!({
                 "closures": s.closures,
+                "duplicates": s.duplicates.len(),
                 "consistent_pairs": s.consistent_pairs,
                 "inliers": inliers,
                 "clique_size": s.clique_size,
@@ -133,8 +162,12 @@ pub fn run(args: PcmArgs) -> Result<()> {
         );
     } else {
         println!(
-            "{names}: {} candidate closures, {} consistent pairs, kept {} ({}), {:.4} s",
+            "{names}: {} candidate closures{}, {} consistent pairs, kept {} ({}), {:.4} s",
             s.closures,
+            match s.duplicates.len() {
+                0 => String::new(),
+                n => format!(" ({n} duplicate copies ignored)"),
+            },
             s.consistent_pairs,
             s.clique_size,
             if s.exact {

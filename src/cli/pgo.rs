@@ -8,7 +8,8 @@ use clap::{Args, ValueEnum};
 use doorslam_backend::init::{self, Chordal};
 use doorslam_backend::robust::chi2_quantile;
 use doorslam_backend::{
-    read_g2o, write_g2o, Graph, Kernel, LieGroup, Method, PoseGraph, SolverOptions, UnknownTags,
+    key, read_g2o_with, write_g2o, Graph, InformationPolicy, Kernel, LieGroup, Method, PoseGraph,
+    ReadOptions, SolverOptions, UnknownTags,
 };
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -38,6 +39,32 @@ pub enum RobustArg {
     Gnc,
 }
 
+/// What to do with information matrices that are not positive definite (some public
+/// benchmark files have them, e.g. 5,021 of SE-Sync cubicle's 16,869 edges).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum InformationArg {
+    /// Refuse the file, saying how many edges are affected and where.
+    Check,
+    /// Use the matrices as written. Levenberg-Marquardt's damping keeps its steps defined
+    /// (Gauss-Newton may fail), but the cost is no sum of squares and may go below zero
+    /// (stop_reason negative_cost). GTSAM reads such files without complaint, yet it
+    /// whitens with an unchecked, partial Cholesky factor: not the matrix as written either.
+    AsIs,
+    /// Replace each by the nearest positive-definite matrix (eigenvalues clamped to a small
+    /// positive floor relative to the largest).
+    NearestPd,
+}
+
+impl From<InformationArg> for InformationPolicy {
+    fn from(a: InformationArg) -> Self {
+        match a {
+            InformationArg::Check => InformationPolicy::Check,
+            InformationArg::AsIs => InformationPolicy::AsIs,
+            InformationArg::NearestPd => InformationPolicy::NearestPd,
+        }
+    }
+}
+
 #[derive(Debug, Args)]
 pub struct PgoArgs {
     /// Pose graph in g2o format (VERTEX_SE2/EDGE_SE2 or VERTEX_SE3:QUAT/EDGE_SE3:QUAT).
@@ -60,6 +87,10 @@ pub struct PgoArgs {
     /// Skip lines with unknown tags (with a warning) instead of failing.
     #[arg(long)]
     pub skip_unknown: bool,
+    /// Information matrices that are not positive definite: refuse the file (check), use
+    /// them as written (as-is) or repair them (nearest-pd).
+    #[arg(long, value_enum, default_value_t = InformationArg::Check)]
+    pub information: InformationArg,
     /// Write the optimized graph here (g2o).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -94,7 +125,7 @@ fn run_graph<G: Chordal>(
     let summary = doorslam_backend::optimize(g, anchor, opts)?;
     Ok(Outcome {
         poses: g.len(),
-        edges: g.edges.len(),
+        edges: g.edges().len(),
         initial_chi2,
         init_chi2,
         summary,
@@ -120,9 +151,35 @@ pub fn run(args: PgoArgs) -> Result<()> {
     } else {
         UnknownTags::Error
     };
-    let mut file = read_g2o(&args.file, unknown)?;
+    let mut file = read_g2o_with(
+        &args.file,
+        ReadOptions {
+            unknown,
+            information: args.information.into(),
+        },
+    )?;
     for w in &file.warnings {
         tracing::warn!("{w}");
+    }
+    if !file.not_positive_definite.is_empty() {
+        tracing::warn!(
+            "{}: {} edges have an information matrix that is not positive definite ({})",
+            args.file.display(),
+            file.not_positive_definite.len(),
+            match args.information {
+                InformationArg::NearestPd => "replaced by the nearest positive-definite one",
+                _ => "used as written",
+            }
+        );
+    }
+    if file.fixed.len() > 1 {
+        // The solver fixes one pose (the gauge); more would need priors it does not have.
+        tracing::warn!(
+            "{}: FIX lists {} poses; only the first, {}, is held fixed",
+            args.file.display(),
+            file.fixed.len(),
+            key::label(file.fixed[0])
+        );
     }
     let dof = match &file.graph {
         Graph::Se2(_) => <nalgebra::Isometry2<f64> as LieGroup>::DIM,
@@ -168,6 +225,9 @@ pub fn run(args: PgoArgs) -> Result<()> {
             "final_chi2": s.final_chi2,
             "iterations": s.iterations,
             "converged": s.converged,
+            "stop_reason": s.stop_reason.as_str(),
+            "not_positive_definite_edges": file.not_positive_definite.len(),
+            "repaired_edges": file.repaired_edges,
             "time_s": outcome.time_s,
         });
         println!("{json}");
@@ -181,7 +241,11 @@ pub fn run(args: PgoArgs) -> Result<()> {
             outcome.init_chi2,
             s.final_chi2,
             s.iterations,
-            if s.converged { "" } else { " (not converged: --max-iterations reached)" },
+            if s.converged {
+                String::new()
+            } else {
+                format!(" ({})", s.stop_reason)
+            },
             outcome.time_s
         );
     }

@@ -143,6 +143,8 @@ pub enum SweepError {
     Solve(#[from] SolveError),
     #[error(transparent)]
     Eval(#[from] EvalError),
+    #[error(transparent)]
+    Edge(#[from] doorslam_backend::EdgeError),
 }
 
 /// What to sweep.
@@ -287,7 +289,7 @@ fn solve(
     let mut g = team.graph.clone();
     let mut index_of_edge = Vec::new();
     let mut k = 0;
-    g.edges.retain(|_| {
+    g.retain_edges(|_| {
         let keep = k < n_odo || kept[k - n_odo];
         if keep && k >= n_odo {
             index_of_edge.push(k - n_odo);
@@ -295,7 +297,7 @@ fn solve(
         k += 1;
         keep
     });
-    let (mut g, index_of_edge) = connected_to_first(&g, &index_of_edge);
+    let (mut g, index_of_edge) = connected_to_first(&g, &index_of_edge)?;
     Isometry3::chordal(&mut g, 0)?;
     let c2 = chi2_99_6();
     let opts = SolverOptions {
@@ -308,7 +310,7 @@ fn solve(
     };
     let s = optimize(&mut g, 0, &opts)?;
     let mut final_kept = vec![false; kept.len()];
-    let n_odo_connected = g.edges.len() - index_of_edge.len();
+    let n_odo_connected = g.edges().len() - index_of_edge.len();
     for (w, &c) in s.weights[n_odo_connected..].iter().zip(&index_of_edge) {
         final_kept[c] = !gnc || *w > 0.5;
     }
@@ -321,8 +323,8 @@ fn solve(
 fn connected_to_first(
     g: &PoseGraph<Isometry3<f64>>,
     closure_of_edge: &[usize],
-) -> (PoseGraph<Isometry3<f64>>, Vec<usize>) {
-    let n_odo = g.edges.len() - closure_of_edge.len();
+) -> Result<(PoseGraph<Isometry3<f64>>, Vec<usize>), SweepError> {
+    let n_odo = g.edges().len() - closure_of_edge.len();
     let seen = g.reachable_from(0);
     let mut sub = PoseGraph::new();
     let mut new_index = vec![usize::MAX; g.len()];
@@ -332,15 +334,15 @@ fn connected_to_first(
         }
     }
     let mut closures = Vec::new();
-    for (n, e) in g.edges.iter().enumerate() {
+    for (n, e) in g.edges().iter().enumerate() {
         if seen[e.i] && seen[e.j] {
-            sub.add_edge(new_index[e.i], new_index[e.j], e.measured, e.information);
+            sub.add_edge(new_index[e.i], new_index[e.j], e.measured, e.information)?;
             if n >= n_odo {
                 closures.push(closure_of_edge[n - n_odo]);
             }
         }
     }
-    (sub, closures)
+    Ok((sub, closures))
 }
 
 fn robots_in(g: &PoseGraph<Isometry3<f64>>) -> usize {
@@ -400,7 +402,7 @@ fn evaluate(team: &SimulatedTeam, method: Method, pcm: &[bool]) -> Result<Outcom
             let candidates: Vec<(u64, u64, &BetweenFactor<Isometry3<f64>>)> = rejected
                 .iter()
                 .map(|&c| {
-                    let e = &team.graph.edges[n_odo + c];
+                    let e = &team.graph.edges()[n_odo + c];
                     (team.graph.keys()[e.i], team.graph.keys()[e.j], e)
                 })
                 .collect();

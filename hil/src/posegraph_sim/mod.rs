@@ -103,14 +103,14 @@ impl SimulatedTeam {
 
     /// The odometry edges (the graph's first edges).
     pub fn odometry_edges(&self) -> &[BetweenFactor<Isometry3<f64>>] {
-        let n = self.graph.edges.len().saturating_sub(self.closures.len());
-        &self.graph.edges[..n]
+        let n = self.graph.edges().len().saturating_sub(self.closures.len());
+        &self.graph.edges()[..n]
     }
 
     /// The closure edges, aligned with [`SimulatedTeam::closures`].
     pub fn closure_edges(&self) -> &[BetweenFactor<Isometry3<f64>>] {
-        let n = self.graph.edges.len().saturating_sub(self.closures.len());
-        &self.graph.edges[n..]
+        let n = self.graph.edges().len().saturating_sub(self.closures.len());
+        &self.graph.edges()[n..]
     }
 
     pub fn counts(&self) -> ClosureCounts {
@@ -187,14 +187,20 @@ pub fn simulate(config: &SimConfig) -> Result<SimulatedTeam, SimError> {
             odometry.push((node((robot, index)), node((robot, index + 1)), z));
         }
     }
+    // The configuration was validated (positive sigmas: Σ⁻¹ is positive definite) and every
+    // edge joins two distinct poses, so the graph refuses nothing; say so if it ever does.
+    let refused =
+        |e: doorslam_backend::EdgeError| SimError::Infeasible(format!("simulated edge: {e}"));
     for (i, j, z) in odometry {
-        graph.add_edge(i, j, z, information);
+        graph.add_edge(i, j, z, information).map_err(refused)?;
     }
 
     let sim = closures::simulate_closures(config, &truth, &mut noise)?;
     let mut labelled = Vec::with_capacity(sim.closures.len());
     for c in sim.closures {
-        graph.add_edge(node(c.a), node(c.b), c.measured, information);
+        graph
+            .add_edge(node(c.a), node(c.b), c.measured, information)
+            .map_err(refused)?;
         labelled.push(LabelledClosure {
             key_a: key::symbol(c.a.0 as u8, c.a.1 as u64)?,
             key_b: key::symbol(c.b.0 as u8, c.b.1 as u64)?,

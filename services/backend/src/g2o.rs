@@ -4,6 +4,10 @@
 //! rotation-first (see [`doorslam_geometry::lie`]): the blocks are permuted here and only here.
 //! Files without `VERTEX` lines (or with edges to poses that have none) get initial
 //! poses by chaining edges outward from the first pose (a spanning tree, file order).
+//!
+//! Information matrices pass the same check as [`PoseGraph::add_edge`]
+//! ([`check_information`]). Some public benchmark files have indefinite ones (SE-Sync's
+//! cubicle: 5,021 of 16,869 edges); [`InformationPolicy`] decides what happens to them.
 
 use std::io::Write;
 use std::path::Path;
@@ -11,7 +15,13 @@ use std::path::Path;
 use nalgebra::{Isometry2, Isometry3, Translation3, UnitQuaternion};
 
 use crate::graph::PoseGraph;
+use doorslam_geometry::information::{
+    check_information, nearest_positive_definite, InformationCheck, InformationError,
+};
 use doorslam_geometry::{LieGroup, TangentMatrix, SO3};
+
+/// How many line numbers [`GraphError::NotPositiveDefinite`] lists.
+const LINES_SHOWN: usize = 10;
 
 /// Errors of reading or writing a graph file; parse errors name the file and line.
 #[derive(Debug, thiserror::Error)]
@@ -30,6 +40,65 @@ pub enum GraphError {
     },
     #[error("{file}: {msg}")]
     Graph { file: String, msg: String },
+    /// Edges whose information matrix is not positive definite, with the default
+    /// [`InformationPolicy::Check`]. The whole file is read first, so this counts them all.
+    #[error("{}", not_positive_definite_message(.file, .lines, *.count, *.edges))]
+    NotPositiveDefinite {
+        file: String,
+        /// Line numbers of the first ones (at most 10).
+        lines: Vec<usize>,
+        /// How many edges have one.
+        count: usize,
+        /// Edges in the file.
+        edges: usize,
+    },
+}
+
+fn not_positive_definite_message(
+    file: &str,
+    lines: &[usize],
+    count: usize,
+    edges: usize,
+) -> String {
+    let listed = lines
+        .iter()
+        .map(usize::to_string)
+        .collect::<Vec<_>>()
+        .join(", ");
+    let more = match count.saturating_sub(lines.len()) {
+        0 => String::new(),
+        n => format!(" and {n} more"),
+    };
+    format!(
+        "{file}:{}: information matrix is not positive definite; {count} of {edges} edges have \
+         one (lines {listed}{more}). Use them as written with --information as-is, or replace \
+         each by the nearest positive-definite matrix with --information nearest-pd",
+        lines.first().copied().unwrap_or(0)
+    )
+}
+
+/// What the reader does with an information matrix that is not positive definite (one
+/// that is not finite or not symmetric is always an error).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum InformationPolicy {
+    /// Refuse the file ([`GraphError::NotPositiveDefinite`]): the cost is not a sum of
+    /// squares with such a matrix, so the problem is not what the file claims to be.
+    #[default]
+    Check,
+    /// Keep the matrix as written ([`InformationCheck::AsIs`]). The objective is then not
+    /// a sum of squares and may be unbounded below; the solver says so
+    /// ([`crate::solver::StopReason::NegativeCost`]) rather than call it converged.
+    AsIs,
+    /// Replace it by the nearest positive-definite matrix
+    /// ([`crate::graph::nearest_positive_definite`]).
+    NearestPd,
+}
+
+/// Options of [`read_g2o_with`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct ReadOptions {
+    pub unknown: UnknownTags,
+    pub information: InformationPolicy,
 }
 
 /// A graph read from a file: planar or 3-D.
@@ -60,6 +129,11 @@ pub struct G2oFile {
     pub chained: usize,
     /// Per pose index: whether the file had a VERTEX line for it.
     pub has_vertex: Vec<bool>,
+    /// Line numbers of the edges whose information matrix is not positive definite (kept
+    /// as written or repaired, per [`InformationPolicy`]; empty with `Check`).
+    pub not_positive_definite: Vec<usize>,
+    /// Edges whose information matrix was replaced ([`InformationPolicy::NearestPd`]).
+    pub repaired_edges: usize,
 }
 
 struct Ctx<'a> {
@@ -112,14 +186,15 @@ impl Ctx<'_> {
             .map_err(|e| self.err(format!("{tag}: quaternion ({x}, {y}, {z}, {w}): {e}")))
     }
     /// Symmetric matrix from the row-major upper triangle, permuted by `order`
-    /// (file index -> solver index), checked positive definite.
+    /// (file index -> solver index), checked by [`check_information`]; returns it with
+    /// whether it is positive definite (what to do if not is the caller's policy).
     fn information(
         &self,
         tag: &str,
         upper: &[f64],
         n: usize,
         order: &[usize],
-    ) -> Result<TangentMatrix, GraphError> {
+    ) -> Result<(TangentMatrix, bool), GraphError> {
         let mut m = TangentMatrix::zeros();
         let mut k = 0;
         for r in 0..n {
@@ -130,12 +205,11 @@ impl Ctx<'_> {
                 k += 1;
             }
         }
-        if m.view((0, 0), (n, n)).into_owned().cholesky().is_none() {
-            return Err(self.err(format!(
-                "{tag}: information matrix is not positive definite"
-            )));
+        match check_information(&m, n, InformationCheck::PositiveDefinite) {
+            Ok(()) => Ok((m, true)),
+            Err(InformationError::NotPositiveDefinite) => Ok((m, false)),
+            Err(e) => Err(self.err(format!("{tag}: {e}"))),
         }
-        Ok(m)
     }
 }
 
@@ -149,25 +223,82 @@ enum Dimension {
     Three,
 }
 
-/// Reads a g2o file.
+/// An edge as read: keys, measurement, information, line, and how to check it.
+type RawEdge<G> = (u64, u64, G, TangentMatrix, usize, InformationCheck);
+
+/// Reads a g2o file, refusing information matrices that are not positive definite.
 pub fn read_g2o(path: &Path, unknown: UnknownTags) -> Result<G2oFile, GraphError> {
+    read_g2o_with(
+        path,
+        ReadOptions {
+            unknown,
+            ..Default::default()
+        },
+    )
+}
+
+/// Reads a g2o file with explicit options.
+pub fn read_g2o_with(path: &Path, options: ReadOptions) -> Result<G2oFile, GraphError> {
     let file = path.display().to_string();
     let text = std::fs::read_to_string(path).map_err(|source| GraphError::Io {
         file: file.clone(),
         source,
     })?;
-    parse_g2o(&text, &file, unknown)
+    parse_g2o_with(&text, &file, options)
 }
 
 /// Parses g2o text; `file` names the source in errors.
 pub fn parse_g2o(text: &str, file: &str, unknown: UnknownTags) -> Result<G2oFile, GraphError> {
+    parse_g2o_with(
+        text,
+        file,
+        ReadOptions {
+            unknown,
+            ..Default::default()
+        },
+    )
+}
+
+/// Applies the policy to one edge's information matrix: the matrix to use, how the graph
+/// must check it, and whether it was not positive definite.
+fn apply_policy(
+    ctx: &Ctx<'_>,
+    tag: &str,
+    (m, pd): (TangentMatrix, bool),
+    n: usize,
+    policy: InformationPolicy,
+) -> Result<(TangentMatrix, InformationCheck, bool), GraphError> {
+    if pd {
+        return Ok((m, InformationCheck::PositiveDefinite, false));
+    }
+    match policy {
+        // Kept for now: the error at the end counts every bad edge of the file.
+        InformationPolicy::Check => Ok((m, InformationCheck::PositiveDefinite, true)),
+        InformationPolicy::AsIs => Ok((m, InformationCheck::AsIs, true)),
+        InformationPolicy::NearestPd => {
+            let repaired = nearest_positive_definite(&m, n)
+                .filter(|r| check_information(r, n, InformationCheck::PositiveDefinite).is_ok())
+                .ok_or_else(|| {
+                    ctx.err(format!(
+                        "{tag}: information matrix has no positive-definite repair (all entries zero?)"
+                    ))
+                })?;
+            Ok((repaired, InformationCheck::PositiveDefinite, true))
+        }
+    }
+}
+
+/// Parses g2o text with explicit options; `file` names the source in errors.
+pub fn parse_g2o_with(text: &str, file: &str, options: ReadOptions) -> Result<G2oFile, GraphError> {
+    let unknown = options.unknown;
     let mut g2 = PoseGraph::<Isometry2<f64>>::new();
     let mut g3 = PoseGraph::<Isometry3<f64>>::new();
     // Vertices may come after the edges that use them: collect, then build.
     let mut v2: Vec<(u64, Isometry2<f64>)> = Vec::new();
     let mut v3: Vec<(u64, Isometry3<f64>)> = Vec::new();
-    let mut e2: Vec<(u64, u64, Isometry2<f64>, TangentMatrix)> = Vec::new();
-    let mut e3: Vec<(u64, u64, Isometry3<f64>, TangentMatrix)> = Vec::new();
+    let mut e2: Vec<RawEdge<Isometry2<f64>>> = Vec::new();
+    let mut e3: Vec<RawEdge<Isometry3<f64>>> = Vec::new();
+    let mut not_pd = Vec::new();
     let mut dim = Dimension::Unknown;
     let mut fixed = Vec::new();
     let mut warnings = Vec::new();
@@ -205,7 +336,12 @@ pub fn parse_g2o(text: &str, file: &str, unknown: UnknownTags) -> Result<G2oFile
                 let (i, j) = (ctx.key(tag, fields[0])?, ctx.key(tag, fields[1])?);
                 let v = ctx.numbers::<9>(tag, &fields[2..])?;
                 let info = ctx.information(tag, &v[3..], 3, &SE2_ORDER)?;
-                e2.push((i, j, Isometry2::new(nalgebra::Vector2::new(v[0], v[1]), v[2]), info));
+                let (info, check, bad) = apply_policy(&ctx, tag, info, 3, options.information)?;
+                if bad {
+                    not_pd.push(ctx.line);
+                }
+                let z = Isometry2::new(nalgebra::Vector2::new(v[0], v[1]), v[2]);
+                e2.push((i, j, z, info, ctx.line, check));
             }
             "VERTEX_SE3:QUAT" => {
                 set_dim(Dimension::Three)?;
@@ -223,7 +359,12 @@ pub fn parse_g2o(text: &str, file: &str, unknown: UnknownTags) -> Result<G2oFile
                 let v = ctx.numbers::<28>(tag, &fields[2..])?;
                 let q = ctx.quaternion(tag, v[3], v[4], v[5], v[6])?;
                 let info = ctx.information(tag, &v[7..], 6, &SE3_ORDER)?;
-                e3.push((i, j, Isometry3::from_parts(Translation3::new(v[0], v[1], v[2]), q), info));
+                let (info, check, bad) = apply_policy(&ctx, tag, info, 6, options.information)?;
+                if bad {
+                    not_pd.push(ctx.line);
+                }
+                let z = Isometry3::from_parts(Translation3::new(v[0], v[1], v[2]), q);
+                e3.push((i, j, z, info, ctx.line, check));
             }
             "FIX" => {
                 for f in &fields {
@@ -240,6 +381,18 @@ pub fn parse_g2o(text: &str, file: &str, unknown: UnknownTags) -> Result<G2oFile
             },
         }
     }
+    if options.information == InformationPolicy::Check && !not_pd.is_empty() {
+        return Err(GraphError::NotPositiveDefinite {
+            file: file.into(),
+            lines: not_pd.iter().copied().take(LINES_SHOWN).collect(),
+            count: not_pd.len(),
+            edges: e2.len() + e3.len(),
+        });
+    }
+    let repaired_edges = match options.information {
+        InformationPolicy::NearestPd => not_pd.len(),
+        _ => 0,
+    };
     let (graph, has_vertex) = match dim {
         Dimension::Unknown => {
             return Err(GraphError::Graph {
@@ -263,6 +416,8 @@ pub fn parse_g2o(text: &str, file: &str, unknown: UnknownTags) -> Result<G2oFile
         warnings,
         chained,
         has_vertex,
+        not_positive_definite: not_pd,
+        repaired_edges,
     })
 }
 
@@ -272,7 +427,7 @@ pub fn parse_g2o(text: &str, file: &str, unknown: UnknownTags) -> Result<G2oFile
 fn assemble<G: LieGroup>(
     g: &mut PoseGraph<G>,
     vertices: Vec<(u64, G)>,
-    edges: Vec<(u64, u64, G, TangentMatrix)>,
+    edges: Vec<RawEdge<G>>,
     file: &str,
 ) -> Result<Vec<bool>, GraphError> {
     let mut known = vec![];
@@ -283,7 +438,7 @@ fn assemble<G: LieGroup>(
             known.push(true);
         }
     }
-    for (i, j, _, _) in &edges {
+    for (i, j, ..) in &edges {
         for k in [*i, *j] {
             if g.index_of(k).is_none() {
                 g.add_pose(k, G::identity());
@@ -291,15 +446,15 @@ fn assemble<G: LieGroup>(
             }
         }
     }
-    for (i, j, z, info) in edges {
+    for (i, j, z, info, line, check) in edges {
+        // Every key got a pose just above.
         let (a, b) = (g.index_of(i).unwrap_or(0), g.index_of(j).unwrap_or(0));
-        if a == b {
-            return Err(GraphError::Graph {
+        g.add_edge_with(a, b, z, info, check)
+            .map_err(|e| GraphError::Parse {
                 file: file.into(),
-                msg: format!("edge from pose {i} to itself"),
-            });
-        }
-        g.add_edge(a, b, z, info);
+                line,
+                msg: e.to_string(),
+            })?;
     }
     if known.iter().all(|k| *k) {
         return Ok(known);
@@ -355,7 +510,7 @@ pub fn write_g2o(graph: &Graph, path: &Path) -> Result<(), GraphError> {
                 )
                 .map_err(io)?;
             }
-            for e in &g.edges {
+            for e in g.edges() {
                 let t = e.measured.translation.vector;
                 let info = upper_triangle(&e.information, 3, &SE2_ORDER);
                 let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
@@ -372,7 +527,7 @@ pub fn write_g2o(graph: &Graph, path: &Path) -> Result<(), GraphError> {
             for (k, p) in g.keys().iter().zip(g.poses()) {
                 writeln!(w, "VERTEX_SE3:QUAT {k} {}", join(&pose7(p))).map_err(io)?;
             }
-            for e in &g.edges {
+            for e in g.edges() {
                 let info = upper_triangle(&e.information, 6, &SE3_ORDER);
                 let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
                 writeln!(

@@ -1,7 +1,15 @@
 //! Pose graphs: poses keyed by `u64`, between-factors with information matrices.
+//!
+//! The graph only holds problems the solver can take as they are: every edge joins two
+//! distinct existing poses and has a finite, symmetric information matrix that is positive
+//! definite unless the caller explicitly chose otherwise ([`InformationCheck::AsIs`]). The
+//! edge list is private so that this holds for every graph, not just for those built
+//! carefully; `doorslam_geometry::check_information` holds the rules, shared with the g2o
+//! reader and the back-end service's input checks.
 
 use std::collections::BTreeMap;
 
+use doorslam_geometry::information::{check_information, InformationCheck, InformationError};
 use doorslam_geometry::{key, LieGroup, TangentMatrix};
 
 /// What an edge is, for per-class robust kernels and for PCM.
@@ -26,13 +34,31 @@ pub struct BetweenFactor<G> {
     pub information: TangentMatrix,
 }
 
+/// Why [`PoseGraph::add_edge`] refused an edge; nothing was added.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum EdgeError {
+    #[error("edge from pose {label} (index {index}) to itself")]
+    SelfLoop { index: usize, label: String },
+    #[error("pose index {index} is out of range: the graph has {len} poses")]
+    UnknownPose { index: usize, len: usize },
+    #[error("edge {from} -> {to}: the measurement is not finite")]
+    NonFiniteMeasurement { from: String, to: String },
+    #[error("edge {from} -> {to}: {source}")]
+    Information {
+        from: String,
+        to: String,
+        #[source]
+        source: InformationError,
+    },
+}
+
 /// A pose graph: poses (dense indices, each with its original key) and between-factors.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PoseGraph<G> {
     keys: Vec<u64>,
     poses: Vec<G>,
     index: BTreeMap<u64, usize>,
-    pub edges: Vec<BetweenFactor<G>>,
+    edges: Vec<BetweenFactor<G>>,
 }
 
 impl<G: LieGroup> Default for PoseGraph<G> {
@@ -63,14 +89,77 @@ impl<G: LieGroup> PoseGraph<G> {
         self.poses.len() - 1
     }
 
-    /// Adds a between-factor on two existing poses (by index).
-    pub fn add_edge(&mut self, i: usize, j: usize, measured: G, information: TangentMatrix) {
+    /// Adds a between-factor on two existing, distinct poses (by index) with a positive-
+    /// definite information matrix; returns the new edge's index.
+    pub fn add_edge(
+        &mut self,
+        i: usize,
+        j: usize,
+        measured: G,
+        information: TangentMatrix,
+    ) -> Result<usize, EdgeError> {
+        self.add_edge_with(
+            i,
+            j,
+            measured,
+            information,
+            InformationCheck::PositiveDefinite,
+        )
+    }
+
+    /// [`Self::add_edge`] with an explicit information check: `InformationCheck::AsIs`
+    /// accepts indefinite matrices (still finite and symmetric).
+    pub fn add_edge_with(
+        &mut self,
+        i: usize,
+        j: usize,
+        measured: G,
+        information: TangentMatrix,
+        check: InformationCheck,
+    ) -> Result<usize, EdgeError> {
+        for index in [i, j] {
+            if index >= self.len() {
+                return Err(EdgeError::UnknownPose {
+                    index,
+                    len: self.len(),
+                });
+            }
+        }
+        if i == j {
+            // Its two Jacobian blocks would land on one diagonal block, which the solver's
+            // pattern has no off-diagonal slot for; and it constrains nothing.
+            return Err(EdgeError::SelfLoop {
+                index: i,
+                label: key::label(self.keys[i]),
+            });
+        }
+        let names = || (key::label(self.keys[i]), key::label(self.keys[j]));
+        if measured.log().iter().any(|v| !v.is_finite()) {
+            let (from, to) = names();
+            return Err(EdgeError::NonFiniteMeasurement { from, to });
+        }
+        check_information(&information, G::DIM, check).map_err(|source| {
+            let (from, to) = names();
+            EdgeError::Information { from, to, source }
+        })?;
         self.edges.push(BetweenFactor {
             i,
             j,
             measured,
             information,
         });
+        Ok(self.edges.len() - 1)
+    }
+
+    /// The between-factors, in the order they were added.
+    pub fn edges(&self) -> &[BetweenFactor<G>] {
+        &self.edges
+    }
+
+    /// Keeps only the edges for which `keep` is true (in order). Removing edges cannot make
+    /// an edge invalid, so this is the one mutation of the edge list besides adding.
+    pub fn retain_edges(&mut self, keep: impl FnMut(&BetweenFactor<G>) -> bool) {
+        self.edges.retain(keep);
     }
 
     pub fn len(&self) -> usize {
@@ -87,9 +176,6 @@ impl<G: LieGroup> PoseGraph<G> {
     }
     pub fn poses_mut(&mut self) -> &mut [G] {
         &mut self.poses
-    }
-    pub fn edges(&self) -> &[BetweenFactor<G>] {
-        &self.edges
     }
     pub fn index_of(&self, key: u64) -> Option<usize> {
         self.index.get(&key).copied()

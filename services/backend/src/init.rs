@@ -20,7 +20,7 @@ use nalgebra::{
 
 use crate::graph::{EdgeClass, PoseGraph};
 use crate::linear::SparseCholesky;
-use crate::solver::{var_of, SolveError};
+use crate::solver::{check_connected, var_of, SolveError};
 use crate::sparsity::BlockPattern;
 use doorslam_geometry::{LieGroup, TangentMatrix};
 
@@ -28,10 +28,10 @@ use doorslam_geometry::{LieGroup, TangentMatrix};
 /// odometry edges first (they are the most accurate chain). Returns the poses reached.
 pub fn chain<G: LieGroup>(graph: &mut PoseGraph<G>, start: usize, known: &[bool]) -> usize {
     let mut adj: Vec<Vec<(usize, usize)>> = vec![Vec::new(); graph.len()];
-    let mut order: Vec<usize> = (0..graph.edges.len()).collect();
-    order.sort_by_key(|&n| graph.edge_class(&graph.edges[n]) != EdgeClass::Odometry);
+    let mut order: Vec<usize> = (0..graph.edges().len()).collect();
+    order.sort_by_key(|&n| graph.edge_class(&graph.edges()[n]) != EdgeClass::Odometry);
     for n in order {
-        let e = &graph.edges[n];
+        let e = &graph.edges()[n];
         adj[e.i].push((e.j, n));
         adj[e.j].push((e.i, n));
     }
@@ -50,7 +50,7 @@ pub fn chain<G: LieGroup>(graph: &mut PoseGraph<G>, start: usize, known: &[bool]
             if known.get(b).copied().unwrap_or(false) {
                 continue;
             }
-            let e = &graph.edges[n];
+            let e = &graph.edges()[n];
             let xa = graph.poses()[a];
             // Xⱼ = Xᵢ Z, or Xᵢ = Xⱼ Z⁻¹ when walking the edge backwards.
             graph.poses_mut()[b] = if e.i == a {
@@ -65,11 +65,13 @@ pub fn chain<G: LieGroup>(graph: &mut PoseGraph<G>, start: usize, known: &[bool]
 
 /// Re-initializes all poses but the anchor from the edges alone (odometry chain first).
 pub fn odometry<G: LieGroup>(graph: &mut PoseGraph<G>, anchor: usize) -> Result<(), SolveError> {
-    let known: Vec<bool> = (0..graph.len()).map(|p| p == anchor).collect();
-    let reached = chain(graph, anchor, &known);
-    if reached < graph.len() {
-        return Err(SolveError::Disconnected(reached));
+    if graph.is_empty() {
+        return Err(SolveError::Empty);
     }
+    // Before chaining: poses the chain cannot reach would keep stale estimates.
+    check_connected(graph, anchor)?;
+    let known: Vec<bool> = (0..graph.len()).map(|p| p == anchor).collect();
+    chain(graph, anchor, &known);
     Ok(())
 }
 
@@ -127,31 +129,27 @@ fn solve_translations(
         let (vi, vj) = (var_of(i, anchor), var_of(j, anchor));
         // Residual tⱼ - tᵢ - d.
         if let Some(a) = vi {
-            pattern.add_diagonal(
-                &mut values,
-                &pattern.block_offsets(a, a).unwrap_or([0; 6]),
-                &one(w),
-            );
+            if let Some(slot) = pattern.diagonal_block(a) {
+                pattern.add_diagonal(&mut values, &slot, &one(w));
+            }
             for ax in 0..3 {
                 rhs[(a, ax)] -= w * d[ax];
             }
         }
         if let Some(b) = vj {
-            pattern.add_diagonal(
-                &mut values,
-                &pattern.block_offsets(b, b).unwrap_or([0; 6]),
-                &one(w),
-            );
+            if let Some(slot) = pattern.diagonal_block(b) {
+                pattern.add_diagonal(&mut values, &slot, &one(w));
+            }
             for ax in 0..3 {
                 rhs[(b, ax)] += w * d[ax];
             }
         }
         match (vi, vj) {
-            (Some(a), Some(b)) => pattern.add_off_diagonal(
-                &mut values,
-                &pattern.block_offsets(a, b).unwrap_or([0; 6]),
-                &one(-w),
-            ),
+            (Some(a), Some(b)) => {
+                if let Some(slot) = pattern.off_diagonal_block(a, b) {
+                    pattern.add_off_diagonal(&mut values, &slot, &one(-w));
+                }
+            }
             (None, Some(b)) => (0..3).for_each(|ax| rhs[(b, ax)] += w * anchor_t[ax]),
             (Some(a), None) => (0..3).for_each(|ax| rhs[(a, ax)] += w * anchor_t[ax]),
             (None, None) => {}
@@ -183,9 +181,12 @@ fn project_so3(m: &Matrix3<f64>) -> Matrix3<f64> {
 impl Chordal for Isometry3<f64> {
     fn chordal(graph: &mut PoseGraph<Self>, anchor: usize) -> Result<(), SolveError> {
         let n = graph.len().checked_sub(1).ok_or(SolveError::Empty)?;
-        let pairs: Vec<(usize, usize)> = graph.edges.iter().map(|e| (e.i, e.j)).collect();
+        // A part not connected to the anchor makes the linear systems singular; name it
+        // instead of failing in the Cholesky factorization.
+        check_connected(graph, anchor)?;
+        let pairs: Vec<(usize, usize)> = graph.edges().iter().map(|e| (e.i, e.j)).collect();
         let w: Vec<(f64, f64)> = graph
-            .edges
+            .edges()
             .iter()
             .map(|e| isotropic_weights(&e.information, 3, 3))
             .collect();
@@ -203,18 +204,18 @@ impl Chordal for Isometry3<f64> {
             .rotation
             .to_rotation_matrix()
             .into_inner();
-        for (e, &(kappa, _)) in graph.edges.iter().zip(&w) {
+        for (e, &(kappa, _)) in graph.edges().iter().zip(&w) {
             let z = e.measured.rotation.to_rotation_matrix().into_inner();
             let mut id = TangentMatrix::zeros();
             id.fixed_view_mut::<3, 3>(0, 0)
                 .copy_from(&(Matrix3::identity() * kappa));
             let (vi, vj) = (var_of(e.i, anchor), var_of(e.j, anchor));
-            for v in [vi, vj].into_iter().flatten() {
-                pattern.add_diagonal(
-                    &mut values,
-                    &pattern.block_offsets(v, v).unwrap_or([0; 6]),
-                    &id,
-                );
+            for slot in [vi, vj]
+                .into_iter()
+                .flatten()
+                .filter_map(|v| pattern.diagonal_block(v))
+            {
+                pattern.add_diagonal(&mut values, &slot, &id);
             }
             match (vi, vj) {
                 (Some(a), Some(b)) => {
@@ -226,11 +227,9 @@ impl Chordal for Isometry3<f64> {
                     };
                     let mut m = TangentMatrix::zeros();
                     m.fixed_view_mut::<3, 3>(0, 0).copy_from(&block);
-                    pattern.add_off_diagonal(
-                        &mut values,
-                        &pattern.block_offsets(a, b).unwrap_or([0; 6]),
-                        &m,
-                    );
+                    if let Some(slot) = pattern.off_diagonal_block(a, b) {
+                        pattern.add_off_diagonal(&mut values, &slot, &m);
+                    }
                 }
                 (None, Some(b)) => {
                     for k in 0..3 {
@@ -256,14 +255,19 @@ impl Chordal for Isometry3<f64> {
             .collect();
         // 2. Translations with those rotations.
         let rotated: Vec<Vector3<f64>> = graph
-            .edges
+            .edges()
             .iter()
             .map(|e| rotations[e.i] * e.measured.translation.vector)
             .collect();
         let taus: Vec<f64> = w.iter().map(|(_, t)| *t).collect();
         let anchor_t = graph.poses()[anchor].translation.vector;
         let t = solve_translations(&pairs, &taus, &rotated, graph.len(), anchor, anchor_t)?;
+        // The anchor keeps its pose exactly (a matrix-quaternion round trip would move it
+        // by rounding, and the solver holds it where it is).
         for (p, pose) in graph.poses_mut().iter_mut().enumerate() {
+            if p == anchor {
+                continue;
+            }
             let q = UnitQuaternion::from_rotation_matrix(
                 &nalgebra::Rotation3::from_matrix_unchecked(rotations[p]),
             );
@@ -276,9 +280,12 @@ impl Chordal for Isometry3<f64> {
 impl Chordal for Isometry2<f64> {
     fn chordal(graph: &mut PoseGraph<Self>, anchor: usize) -> Result<(), SolveError> {
         let n = graph.len().checked_sub(1).ok_or(SolveError::Empty)?;
-        let pairs: Vec<(usize, usize)> = graph.edges.iter().map(|e| (e.i, e.j)).collect();
+        // A part not connected to the anchor makes the linear systems singular; name it
+        // instead of failing in the Cholesky factorization.
+        check_connected(graph, anchor)?;
+        let pairs: Vec<(usize, usize)> = graph.edges().iter().map(|e| (e.i, e.j)).collect();
         let w: Vec<(f64, f64)> = graph
-            .edges
+            .edges()
             .iter()
             .map(|e| isotropic_weights(&e.information, 1, 2))
             .collect();
@@ -296,7 +303,7 @@ impl Chordal for Isometry2<f64> {
             let r = graph.poses()[anchor].rotation;
             Vector2::new(r.cos_angle(), r.sin_angle())
         };
-        for (e, &(kappa, _)) in graph.edges.iter().zip(&w) {
+        for (e, &(kappa, _)) in graph.edges().iter().zip(&w) {
             let (c, s) = (
                 e.measured.rotation.cos_angle(),
                 e.measured.rotation.sin_angle(),
@@ -306,12 +313,12 @@ impl Chordal for Isometry2<f64> {
             id.fixed_view_mut::<2, 2>(0, 0)
                 .copy_from(&(Matrix2::identity() * kappa));
             let (vi, vj) = (var_of(e.i, anchor), var_of(e.j, anchor));
-            for v in [vi, vj].into_iter().flatten() {
-                pattern.add_diagonal(
-                    &mut values,
-                    &pattern.block_offsets(v, v).unwrap_or([0; 6]),
-                    &id,
-                );
+            for slot in [vi, vj]
+                .into_iter()
+                .flatten()
+                .filter_map(|v| pattern.diagonal_block(v))
+            {
+                pattern.add_diagonal(&mut values, &slot, &id);
             }
             match (vi, vj) {
                 (Some(a), Some(b)) => {
@@ -322,11 +329,9 @@ impl Chordal for Isometry2<f64> {
                     };
                     let mut m = TangentMatrix::zeros();
                     m.fixed_view_mut::<2, 2>(0, 0).copy_from(&block);
-                    pattern.add_off_diagonal(
-                        &mut values,
-                        &pattern.block_offsets(a, b).unwrap_or([0; 6]),
-                        &m,
-                    );
+                    if let Some(slot) = pattern.off_diagonal_block(a, b) {
+                        pattern.add_off_diagonal(&mut values, &slot, &m);
+                    }
                 }
                 (None, Some(b)) => {
                     let v = mz * ua * kappa;
@@ -349,7 +354,7 @@ impl Chordal for Isometry2<f64> {
             })
             .collect();
         let rotated: Vec<Vector3<f64>> = graph
-            .edges
+            .edges()
             .iter()
             .map(|e| {
                 let d = angles[e.i] * e.measured.translation.vector;
@@ -367,6 +372,9 @@ impl Chordal for Isometry2<f64> {
             Vector3::new(at.x, at.y, 0.0),
         )?;
         for (p, pose) in graph.poses_mut().iter_mut().enumerate() {
+            if p == anchor {
+                continue;
+            }
             *pose = Isometry2::from_parts(Translation2::new(t[p].x, t[p].y), angles[p]);
         }
         Ok(())

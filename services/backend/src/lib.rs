@@ -23,9 +23,15 @@ pub mod service;
 pub mod solver;
 pub mod sparsity;
 
+pub use doorslam_geometry::information::{check_information, InformationCheck, InformationError};
 pub use doorslam_geometry::{key, LieGroup};
-pub use g2o::{read_g2o, write_g2o, G2oFile, Graph, GraphError, UnknownTags};
-pub use graph::{BetweenFactor, EdgeClass, PoseGraph};
+pub use g2o::{
+    read_g2o, read_g2o_with, write_g2o, G2oFile, Graph, GraphError, InformationPolicy, ReadOptions,
+    UnknownTags,
+};
+pub use graph::{BetweenFactor, EdgeClass, EdgeError, PoseGraph};
 pub use linear::{LinearError, SparseCholesky};
 pub use robust::Kernel;
-pub use solver::{optimize, Method, Optimizer, SolveError, SolverOptions, Summary};
+pub use solver::{
+    optimize, Criterion, Method, Optimizer, SolveError, SolverOptions, StopReason, Summary,
+};

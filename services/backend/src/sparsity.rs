@@ -9,6 +9,16 @@ use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 
 use doorslam_geometry::TangentMatrix;
 
+/// Per column c of a diagonal block, the offset of its entry (c, c); entry (r, c), r ≥ c,
+/// is at `offset[c] + r - c`. Only [`BlockPattern::diagonal_block`] makes one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DiagonalSlot([usize; 6]);
+
+/// Per column c of an off-diagonal block, the offset of its entry (0, c); entry (r, c) is
+/// at `offset[c] + r`. Only [`BlockPattern::off_diagonal_block`] makes one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct OffDiagonalSlot([usize; 6]);
+
 /// The lower-triangular CSC pattern of a symmetric block matrix.
 pub struct BlockPattern {
     bdim: usize,
@@ -71,40 +81,58 @@ impl BlockPattern {
         (0..self.n).map(|col| self.col_ptr[col]).collect()
     }
 
-    /// For block (a, b), per column c of the block, the offset of entry (row 0 of the
-    /// block, column c): entry (r, c) is at `offsets[c] + r` for off-diagonal blocks and
-    /// at `offsets[c] + r - c` (r ≥ c) for diagonal blocks. `None` if the block is absent.
-    pub fn block_offsets(&self, a: usize, b: usize) -> Option<[usize; 6]> {
-        let (hi, lo) = (a.max(b), a.min(b));
-        let mut out = [0usize; 6];
-        if hi == lo {
-            for (c, o) in out.iter_mut().enumerate().take(self.bdim) {
-                *o = self.col_ptr[lo * self.bdim + c];
-            }
-            return Some(out);
+    /// Where diagonal block (a, a) lives, `None` if `a` is out of range. Diagonal and
+    /// off-diagonal blocks are stored differently (lower triangle only, versus full), so
+    /// they have distinct slot types: writing one as the other would spill into the
+    /// neighbouring columns' entries.
+    pub fn diagonal_block(&self, a: usize) -> Option<DiagonalSlot> {
+        if a * self.bdim >= self.n {
+            return None;
         }
-        let k = self.below[lo].binary_search(&hi).ok()?;
+        let mut out = [0usize; 6];
+        for (c, o) in out.iter_mut().enumerate().take(self.bdim) {
+            *o = self.col_ptr[a * self.bdim + c];
+        }
+        Some(DiagonalSlot(out))
+    }
+
+    /// The slots of all diagonal blocks, in block order.
+    pub fn diagonal_blocks(&self) -> Vec<DiagonalSlot> {
+        (0..self.n / self.bdim.max(1))
+            .filter_map(|a| self.diagonal_block(a))
+            .collect()
+    }
+
+    /// Where off-diagonal block (max(a, b), min(a, b)) lives; `None` if `a == b` (that is
+    /// a diagonal block) or the pair is not in the pattern.
+    pub fn off_diagonal_block(&self, a: usize, b: usize) -> Option<OffDiagonalSlot> {
+        let (hi, lo) = (a.max(b), a.min(b));
+        if hi == lo {
+            return None;
+        }
+        let k = self.below.get(lo)?.binary_search(&hi).ok()?;
+        let mut out = [0usize; 6];
         for (c, o) in out.iter_mut().enumerate().take(self.bdim) {
             *o = self.col_ptr[lo * self.bdim + c] + (self.bdim - c) + k * self.bdim;
         }
-        Some(out)
+        Some(OffDiagonalSlot(out))
     }
 
-    /// Adds `m` (top-left `bdim × bdim`) into the diagonal block at `offsets` (lower part).
-    pub fn add_diagonal(&self, values: &mut [f64], offsets: &[usize; 6], m: &TangentMatrix) {
+    /// Adds the lower part of `m` (top-left `bdim × bdim`) into a diagonal block.
+    pub fn add_diagonal(&self, values: &mut [f64], slot: &DiagonalSlot, m: &TangentMatrix) {
         for c in 0..self.bdim {
             for r in c..self.bdim {
-                values[offsets[c] + r - c] += m[(r, c)];
+                values[slot.0[c] + r - c] += m[(r, c)];
             }
         }
     }
 
-    /// Adds `m` into the off-diagonal block (hi, lo) at `offsets`: `m` must be the block
-    /// with rows of the higher-index pose and columns of the lower one.
-    pub fn add_off_diagonal(&self, values: &mut [f64], offsets: &[usize; 6], m: &TangentMatrix) {
+    /// Adds `m` into an off-diagonal block: `m` must be the block with rows of the
+    /// higher-index pose and columns of the lower one.
+    pub fn add_off_diagonal(&self, values: &mut [f64], slot: &OffDiagonalSlot, m: &TangentMatrix) {
         for c in 0..self.bdim {
             for r in 0..self.bdim {
-                values[offsets[c] + r] += m[(r, c)];
+                values[slot.0[c] + r] += m[(r, c)];
             }
         }
     }

@@ -6,9 +6,16 @@
 use std::collections::BTreeSet;
 use std::path::PathBuf;
 
-use doorslam_backend::outliers::{pairwise_mahalanobis2, Closure, Odometry, Pcm, PcmError, Scope};
-use doorslam_backend::{key, read_g2o, Graph, PoseGraph, UnknownTags};
-use nalgebra::Isometry3;
+use doorslam_backend::graph::between_residual;
+use doorslam_backend::init::Chordal;
+use doorslam_backend::outliers::{
+    pairwise_mahalanobis2, readmit, Closure, Odometry, Pcm, PcmError, Scope,
+};
+use doorslam_backend::robust::chi2_quantile;
+use doorslam_backend::{
+    key, optimize, read_g2o, BetweenFactor, Graph, LieGroup, PoseGraph, SolverOptions, UnknownTags,
+};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
 fn folder(rel: &str) -> PathBuf {
     std::env::var_os("DOORSLAM_DATA")
@@ -32,11 +39,11 @@ fn load(rel: &str, robots: usize) -> PoseGraph<Isometry3<f64>> {
                 merged.add_pose(k, *p);
             }
         }
-        for e in &g.edges {
+        for e in g.edges() {
             let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
             if seen.insert((a, b)) {
                 let (i, j) = (merged.index_of(a).unwrap(), merged.index_of(b).unwrap());
-                merged.add_edge(i, j, e.measured, e.information);
+                merged.add_edge(i, j, e.measured, e.information).unwrap();
             }
         }
     }
@@ -108,7 +115,7 @@ fn a_consistent_pair_passes_and_a_perturbed_one_fails() {
     let odo = Odometry::from_graph(&graph).unwrap();
     let keys = graph.keys();
     let closures: Vec<Closure> = graph
-        .edges
+        .edges()
         .iter()
         .filter(|e| key::robot(keys[e.i]) != key::robot(keys[e.j]))
         .map(|e| Closure {
@@ -141,18 +148,17 @@ fn incremental_pcm_equals_batch() {
     let batch = batch.run(&graph).unwrap();
     // Same graph with only the first half of the inter-robot edges, then all of them.
     let keys = graph.keys().to_vec();
-    let inter: Vec<usize> = (0..graph.edges.len())
-        .filter(|&n| key::robot(keys[graph.edges[n].i]) != key::robot(keys[graph.edges[n].j]))
+    let edges = graph.edges();
+    let inter: Vec<usize> = (0..edges.len())
+        .filter(|&n| key::robot(keys[edges[n].i]) != key::robot(keys[edges[n].j]))
         .collect();
     let mut partial = graph.clone();
     let drop: BTreeSet<usize> = inter[inter.len() / 2..].iter().copied().collect();
-    partial.edges = graph
-        .edges
-        .iter()
-        .enumerate()
-        .filter(|(n, _)| !drop.contains(n))
-        .map(|(_, e)| e.clone())
-        .collect();
+    let mut n = 0;
+    partial.retain_edges(|_| {
+        n += 1;
+        !drop.contains(&(n - 1))
+    });
     let mut incremental = Pcm::new(0.99, Scope::InterRobot).unwrap();
     let first = incremental.run(&partial).unwrap();
     assert_eq!(first.closures, inter.len() / 2);
@@ -197,4 +203,137 @@ fn bad_thresholds_and_graphs_without_candidates_are_clear_errors() {
         .run(&single)
         .unwrap();
     assert!(s.closures > 0 && s.clique_size > 0);
+}
+
+/// Indices of the inter-robot edges of `g`.
+fn inter_edges(g: &PoseGraph<Isometry3<f64>>) -> Vec<usize> {
+    let keys = g.keys();
+    (0..g.edges().len())
+        .filter(|&n| key::robot(keys[g.edges()[n].i]) != key::robot(keys[g.edges()[n].j]))
+        .collect()
+}
+
+/// `g` with only the inter-robot edges at the positions in `keep` (odometry stays).
+fn with_closures(g: &PoseGraph<Isometry3<f64>>, keep: &[usize]) -> PoseGraph<Isometry3<f64>> {
+    let inter: BTreeSet<usize> = inter_edges(g).into_iter().collect();
+    let mut out = g.clone();
+    let mut n = 0;
+    out.retain_edges(|_| {
+        n += 1;
+        !inter.contains(&(n - 1)) || keep.contains(&(n - 1))
+    });
+    out
+}
+
+/// A wrong measurement on the poses of `e`: 2 m and 0.3 rad off (20 odometry steps of
+/// σ_R = 0.01 explain ~0.05 rad), as confident as the real one.
+fn wrong(e: &BetweenFactor<Isometry3<f64>>) -> Isometry3<f64> {
+    e.measured
+        * Isometry3::from_parts(
+            Translation3::new(2.0, 0.0, 0.0),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, 0.3),
+        )
+}
+
+#[test]
+fn an_outlier_closure_sent_twice_in_one_batch_is_rejected() {
+    let clean = load("clean/example_2robots", 2);
+    let inter = inter_edges(&clean);
+    // One real closure, and a wrong one received twice (a retransmission).
+    let mut g = with_closures(&clean, &inter[..1]);
+    let e = clean.edges()[inter[1]].clone();
+    g.add_edge(e.i, e.j, wrong(&e), e.information).unwrap();
+    let copy = g.add_edge(e.i, e.j, wrong(&e), e.information).unwrap();
+    let s = Pcm::new(0.99, Scope::InterRobot).unwrap().run(&g).unwrap();
+    // The two copies would be a consistent pair of their own and pass min_clique = 2.
+    assert!(s.inliers.is_empty(), "kept {:?}", s.inliers);
+    assert_eq!(s.clique_size, 0);
+    assert_eq!(s.duplicates, vec![copy]);
+    assert_eq!(s.closures, 2, "the copy is not a candidate of its own");
+    // The closure it copies is still a candidate: with a consistent second real closure
+    // the real pair is kept and the wrong one (with its copy) is not.
+    let mut h = with_closures(&clean, &inter[..1]);
+    h.add_edge(e.i, e.j, wrong(&e), e.information).unwrap();
+    h.add_edge(e.i, e.j, wrong(&e), e.information).unwrap();
+    let real = &clean.edges()[inter[2]];
+    h.add_edge(real.i, real.j, real.measured, real.information)
+        .unwrap();
+    let s = Pcm::new(0.99, Scope::InterRobot).unwrap().run(&h).unwrap();
+    let keys = clean.keys();
+    let pair = |e: &BetweenFactor<Isometry3<f64>>| (keys[e.i], keys[e.j]);
+    let kept: BTreeSet<(u64, u64)> = s.inliers.iter().copied().collect();
+    let want: BTreeSet<(u64, u64)> = [pair(&clean.edges()[inter[0]]), pair(real)].into();
+    assert_eq!(kept, want);
+}
+
+#[test]
+fn a_copy_in_a_later_batch_does_not_confirm_a_closure() {
+    let clean = load("clean/example_2robots", 2);
+    let inter = inter_edges(&clean);
+    let e = clean.edges()[inter[1]].clone();
+    let mut g = with_closures(&clean, &[]);
+    g.add_edge(e.i, e.j, wrong(&e), e.information).unwrap();
+    let mut pcm = Pcm::new(0.99, Scope::InterRobot).unwrap();
+    let s = pcm.run(&g).unwrap();
+    assert_eq!(
+        (s.closures, s.inliers.len()),
+        (1, 0),
+        "a lone closure waits"
+    );
+    // The same closure again, sent from the other robot's side: z⁻¹ with the information
+    // moved to that frame (Ω' = Ad(z)⁻ᵀ Ω Ad(z)⁻¹), equal only up to rounding.
+    let z = wrong(&e);
+    let ad_inv = z.adjoint().try_inverse().unwrap();
+    let reversed_info = ad_inv.transpose() * e.information * ad_inv;
+    let reversed = g.add_edge(e.j, e.i, z.inverse(), reversed_info).unwrap();
+    let s = pcm.run(&g).unwrap();
+    assert!(s.inliers.is_empty(), "kept {:?}", s.inliers);
+    assert_eq!(s.duplicates, vec![reversed]);
+    assert_eq!(s.closures, 1);
+    // And once more, bit for bit, in a third batch.
+    let exact = g.add_edge(e.i, e.j, z, e.information).unwrap();
+    let s = pcm.run(&g).unwrap();
+    assert_eq!(s.duplicates, vec![reversed, exact]);
+    assert_eq!((s.closures, s.inliers.len()), (1, 0));
+}
+
+#[test]
+fn readmit_takes_back_an_inlier_and_not_an_outlier() {
+    let clean = load("clean/example_2robots", 2);
+    let inter = inter_edges(&clean);
+    // The estimate built without one of the real closures, as if PCM had rejected it.
+    let left_out = clean.edges()[inter[3]].clone();
+    let mut rest: Vec<usize> = inter.clone();
+    rest.remove(3);
+    let mut estimate = with_closures(&clean, &rest);
+    Isometry3::chordal(&mut estimate, 0).unwrap();
+    assert!(
+        optimize(&mut estimate, 0, &SolverOptions::default())
+            .unwrap()
+            .converged
+    );
+    let outlier = BetweenFactor {
+        measured: wrong(&left_out),
+        ..left_out.clone()
+    };
+    let keys = clean.keys();
+    let (a, b) = (keys[left_out.i], keys[left_out.j]);
+    let gamma = chi2_quantile(0.99, 6).unwrap();
+    let candidates = [
+        (a, b, &outlier),
+        (a, b, &left_out),
+        // A pose the estimate does not have cannot be checked: not re-admitted.
+        (key::symbol(0, 1_000_000).unwrap(), b, &left_out),
+    ];
+    assert_eq!(readmit(&estimate, &candidates, gamma), vec![1]);
+    // The test is the closure's own residual against γ, inclusive.
+    let r = between_residual(
+        &estimate.poses()[left_out.i],
+        &estimate.poses()[left_out.j],
+        &left_out.measured,
+    );
+    let own = r.dot(&(left_out.information * r));
+    assert!(own < gamma, "{own}");
+    assert_eq!(readmit(&estimate, &candidates, own), vec![1]);
+    assert!(readmit(&estimate, &candidates, own * 0.999).is_empty());
 }

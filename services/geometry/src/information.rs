@@ -10,21 +10,6 @@ use nalgebra::{DMatrix, Matrix6};
 
 use crate::TangentMatrix;
 
-/// Why an information matrix is refused. The same rules hold for g2o files, messages
-/// from the front-end and other robots, and the graph API, so a matrix accepted in one
-/// place is accepted in all.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum InformationError {
-    #[error("information matrix entry ({row}, {col}) is {value}, not finite")]
-    NonFinite { row: usize, col: usize, value: f64 },
-    #[error("information matrix is not symmetric: ({row}, {col}) differs from its transpose by {diff:e}")]
-    NotSymmetric { row: usize, col: usize, diff: f64 },
-    #[error(
-        "information matrix is not positive definite (smallest eigenvalue {min_eigenvalue:e})"
-    )]
-    NotPositiveDefinite { min_eigenvalue: f64 },
-}
-
 /// Upper triangle (row-major, 21 values) → symmetric 6×6 matrix.
 pub fn matrix_from_upper(upper: &[f64; 21]) -> TangentMatrix {
     let mut m = Matrix6::zeros();
@@ -62,67 +47,124 @@ fn block(m: &TangentMatrix, dim: usize) -> DMatrix<f64> {
     m.view((0, 0), (dim, dim)).into_owned()
 }
 
-/// Checks the top-left `dim × dim` block: every entry finite, symmetric (to 1e-9 relative
-/// to its largest entry), positive definite (Cholesky succeeds).
-pub fn check_information(m: &TangentMatrix, dim: usize) -> Result<(), InformationError> {
-    check_symmetric(m, dim)?;
-    if block(m, dim).cholesky().is_none() {
-        return Err(InformationError::NotPositiveDefinite {
-            min_eigenvalue: min_eigenvalue(m, dim),
-        });
-    }
-    Ok(())
+/// How strictly an information matrix is checked (the graph API's `add_edge_with`, the g2o
+/// reader). Finiteness and symmetry are always required: a NaN poisons the cost, and the
+/// solver reads only the lower triangle, so an asymmetric matrix would silently become a
+/// different one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum InformationCheck {
+    /// Also positive definite (the default): an indefinite Ω makes rᵀΩr negative in some
+    /// directions, so the cost is not a sum of squares and Gauss-Newton's normal equations
+    /// may be singular or indefinite.
+    #[default]
+    PositiveDefinite,
+    /// Use the matrix as written even if it is indefinite or singular: published benchmark
+    /// files (SE-Sync's cubicle) contain such matrices and other solvers accept them.
+    /// Levenberg-Marquardt's damping keeps its steps defined; Gauss-Newton may fail.
+    AsIs,
 }
 
-/// The first two rules of [`check_information`] (finite, symmetric), for a caller that
-/// deliberately uses indefinite matrices as written (as GTSAM does with such files).
-pub fn check_symmetric(m: &TangentMatrix, dim: usize) -> Result<(), InformationError> {
-    let scale = 1.0 + m.view((0, 0), (dim, dim)).amax();
-    for row in 0..dim {
-        for col in 0..dim {
-            let value = m[(row, col)];
+/// Why an information matrix was refused by [`check_information`]. The same rules hold for g2o
+/// files, messages from the front-end and other robots, and the graph API, so a matrix
+/// accepted in one place is accepted in all.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum InformationError {
+    #[error("information matrix entry ({row}, {col}) is {value}, not finite")]
+    NonFinite { row: usize, col: usize, value: f64 },
+    #[error(
+        "information matrix is not symmetric: entries ({row}, {col}) and ({col}, {row}) are {a} and {b}"
+    )]
+    NotSymmetric {
+        row: usize,
+        col: usize,
+        a: f64,
+        b: f64,
+    },
+    #[error("information matrix is not positive definite")]
+    NotPositiveDefinite,
+}
+
+/// Relative tolerance of the symmetry check, against the largest entry: a matrix computed
+/// as `AᵀA` or as an inverse is symmetric only to rounding.
+pub const SYMMETRY_TOLERANCE: f64 = 1e-9;
+
+/// The one definition of an acceptable information matrix, for the graph API and the g2o
+/// reader alike: the leading `dim × dim` block (the rest is padding, see [`crate::lie`])
+/// must be finite, symmetric to [`SYMMETRY_TOLERANCE`] and, with
+/// [`InformationCheck::PositiveDefinite`], have a Cholesky factorization.
+pub fn check_information(
+    information: &TangentMatrix,
+    dim: usize,
+    check: InformationCheck,
+) -> Result<(), InformationError> {
+    let dim = dim.min(6);
+    let mut scale = 0.0f64;
+    for col in 0..dim {
+        for row in 0..dim {
+            let value = information[(row, col)];
             if !value.is_finite() {
                 return Err(InformationError::NonFinite { row, col, value });
             }
-            let diff = (value - m[(col, row)]).abs();
-            if diff > 1e-9 * scale {
-                return Err(InformationError::NotSymmetric { row, col, diff });
+            scale = scale.max(value.abs());
+        }
+    }
+    for col in 0..dim {
+        for row in col + 1..dim {
+            let (a, b) = (information[(row, col)], information[(col, row)]);
+            if (a - b).abs() > SYMMETRY_TOLERANCE * scale {
+                return Err(InformationError::NotSymmetric { row, col, a, b });
             }
         }
+    }
+    if check == InformationCheck::PositiveDefinite
+        && information
+            .view((0, 0), (dim, dim))
+            .into_owned()
+            .cholesky()
+            .is_none()
+    {
+        return Err(InformationError::NotPositiveDefinite);
     }
     Ok(())
 }
 
-/// The smallest eigenvalue of the top-left `dim × dim` block (symmetric part).
-pub fn min_eigenvalue(m: &TangentMatrix, dim: usize) -> f64 {
-    let b = block(m, dim);
-    let sym = (&b + b.transpose()) * 0.5;
-    sym.symmetric_eigenvalues().min()
-}
+/// Eigenvalues of a repaired matrix are at least this fraction of its largest one: small
+/// enough to stay close to the original, large enough for the condition number (1e8) to
+/// leave the Cholesky factorization well defined.
+pub const NEAREST_PD_FLOOR: f64 = 1e-8;
 
-/// The positive-definite matrix nearest to `m` in the Frobenius norm, on the top-left
-/// `dim × dim` block: its symmetric part with eigenvalues below `floor = 1e-9 · λmax`
-/// raised to the floor (Higham 1988). The rest of the padded matrix stays zero.
-pub fn nearest_positive_definite(m: &TangentMatrix, dim: usize) -> TangentMatrix {
-    let b = block(m, dim);
-    let sym = (&b + b.transpose()) * 0.5;
+/// The nearest positive-definite matrix to the (symmetrized) leading `dim × dim` block:
+/// symmetric eigen-decomposition with the eigenvalues clamped to [`NEAREST_PD_FLOOR`]
+/// times the largest magnitude (the Frobenius-nearest PSD matrix clamps to 0, which is not
+/// definite). The padding is zeroed. `None` if an entry is not finite or all are zero: then
+/// there is no scale to repair towards.
+pub fn nearest_positive_definite(information: &TangentMatrix, dim: usize) -> Option<TangentMatrix> {
+    let dim = dim.min(6);
+    let block = information.view((0, 0), (dim, dim)).into_owned();
+    if block.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    let sym = (&block + block.transpose()) * 0.5;
     let eig = sym.symmetric_eigen();
-    let largest = eig.eigenvalues.max().abs().max(f64::MIN_POSITIVE);
-    let floor = 1e-9 * largest;
+    let largest = eig.eigenvalues.amax();
+    if largest <= 0.0 {
+        return None;
+    }
+    let floor = NEAREST_PD_FLOOR * largest;
     let clamped = eig.eigenvalues.map(|l| l.max(floor));
-    let repaired =
-        &eig.eigenvectors * DMatrix::from_diagonal(&clamped) * eig.eigenvectors.transpose();
+    let v = &eig.eigenvectors;
+    let repaired = v * nalgebra::DMatrix::from_diagonal(&clamped) * v.transpose();
     let mut out = TangentMatrix::zeros();
-    for r in 0..dim {
-        for c in 0..dim {
-            // Symmetrize again: the product is symmetric only to rounding.
+    for c in 0..dim {
+        for r in 0..dim {
+            // Average the mirror entries: the product is symmetric only to rounding.
             out[(r, c)] = 0.5 * (repaired[(r, c)] + repaired[(c, r)]);
         }
     }
-    out
+    Some(out)
 }
 
-/// `Σ = Ω⁻¹` on the top-left `dim × dim` block, after [`check_information`].
+/// `Σ = Ω⁻¹` on the top-left `dim × dim` block (which must pass [`check_information`]).
 pub fn covariance_from_information(
     information: &TangentMatrix,
     dim: usize,
@@ -139,12 +181,10 @@ pub fn information_from_covariance(
 }
 
 fn invert_spd(m: &TangentMatrix, dim: usize) -> Result<TangentMatrix, InformationError> {
-    check_symmetric(m, dim)?;
+    check_information(m, dim, InformationCheck::AsIs)?;
     let chol = block(m, dim)
         .cholesky()
-        .ok_or_else(|| InformationError::NotPositiveDefinite {
-            min_eigenvalue: min_eigenvalue(m, dim),
-        })?;
+        .ok_or(InformationError::NotPositiveDefinite)?;
     let inv = chol.inverse();
     let mut out = TangentMatrix::zeros();
     out.view_mut((0, 0), (dim, dim)).copy_from(&inv);
@@ -155,6 +195,8 @@ fn invert_spd(m: &TangentMatrix, dim: usize) -> Result<TangentMatrix, Informatio
 mod tests {
     use super::*;
     use nalgebra::Vector6;
+
+    const PD: InformationCheck = InformationCheck::PositiveDefinite;
 
     #[test]
     fn layouts_round_trip() {
@@ -170,42 +212,48 @@ mod tests {
     #[test]
     fn rules() {
         let good = Matrix6::identity() * 4.0;
-        assert_eq!(check_information(&good, 6), Ok(()));
+        assert_eq!(check_information(&good, 6, PD), Ok(()));
         let mut nan = good;
         nan[(2, 3)] = f64::NAN;
         assert!(matches!(
-            check_information(&nan, 6),
+            check_information(&nan, 6, PD),
             Err(InformationError::NonFinite { row: 2, col: 3, .. })
         ));
         let mut asym = good;
         asym[(0, 1)] = 1.0;
         assert!(matches!(
-            check_information(&asym, 6),
+            check_information(&asym, 6, PD),
             Err(InformationError::NotSymmetric { .. })
         ));
         let mut indefinite = good;
         indefinite[(5, 5)] = -1.0;
         assert!(matches!(
-            check_information(&indefinite, 6),
-            Err(InformationError::NotPositiveDefinite { min_eigenvalue }) if (min_eigenvalue + 1.0).abs() < 1e-12
+            check_information(&indefinite, 6, PD),
+            Err(InformationError::NotPositiveDefinite)
         ));
         // SE(2) uses the 3×3 block only: the padding may be zero.
         let mut se2 = TangentMatrix::zeros();
         se2.view_mut((0, 0), (3, 3)).fill_with_identity();
-        assert_eq!(check_information(&se2, 3), Ok(()));
-        assert!(check_information(&se2, 6).is_err());
+        assert_eq!(check_information(&se2, 3, PD), Ok(()));
+        assert!(check_information(&se2, 6, PD).is_err());
+        // As-is admits the indefinite matrix, never a NaN.
+        assert_eq!(
+            check_information(&indefinite, 6, InformationCheck::AsIs),
+            Ok(())
+        );
+        assert!(check_information(&nan, 6, InformationCheck::AsIs).is_err());
     }
 
     #[test]
     fn nearest_pd_repairs_only_what_is_wrong() {
         let good = Matrix6::from_diagonal(&Vector6::new(1.0, 2.0, 3.0, 4.0, 5.0, 6.0));
-        assert!((nearest_positive_definite(&good, 6) - good).amax() < 1e-12);
+        assert!((nearest_positive_definite(&good, 6).unwrap() - good).amax() < 1e-12);
         let mut bad = good;
         bad[(0, 1)] = 5.0;
         bad[(1, 0)] = 5.0;
-        assert!(check_information(&bad, 6).is_err());
-        let fixed = nearest_positive_definite(&bad, 6);
-        assert_eq!(check_information(&fixed, 6), Ok(()));
+        assert!(check_information(&bad, 6, PD).is_err());
+        let fixed = nearest_positive_definite(&bad, 6).unwrap();
+        assert_eq!(check_information(&fixed, 6, PD), Ok(()));
         // Untouched directions keep their values.
         assert!((fixed[(5, 5)] - 6.0).abs() < 1e-12);
     }

@@ -21,7 +21,7 @@ pub mod lie;
 pub mod pose;
 pub mod so3;
 
-pub use information::{check_information, InformationError};
+pub use information::{check_information, InformationCheck, InformationError};
 pub use key::KeyError;
 pub use lie::{LieGroup, Tangent, TangentMatrix, SE2, SE3};
 pub use pose::{pose_from_array, pose_to_array, PoseError};

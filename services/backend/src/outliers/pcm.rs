@@ -16,6 +16,13 @@
 //! then O(1) from prefix products: `Σᵤᵥ = Σ₀ᵥ − Ad(Tᵤᵥ⁻¹) Σ₀ᵤ Ad(Tᵤᵥ⁻¹)ᵀ`.
 //! Each robot pair is its own problem; new closures are checked only against the existing
 //! ones and the clique search warm-starts from the previous clique.
+//!
+//! Copies of one closure (same keys, same measurement to [`DUPLICATE_D2`], in either
+//! direction) count once: a lossy radio retransmits, and two copies are perfectly
+//! consistent with each other, so without this a single wrong closure sent twice would
+//! pass `min_clique = 2` on its own. The first copy is the candidate; later ones, in the
+//! same batch or in a later [`Pcm::run`], are listed in [`PcmSummary::duplicates`] and
+//! share its verdict (inliers are reported by keys).
 
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
@@ -35,7 +42,10 @@ pub enum PcmError {
     Threshold(f64),
     #[error("no candidate closures: {0}")]
     NoCandidates(String),
-    #[error("information matrix of the edge {a} -> {b} is not invertible")]
+    #[error(
+        "information matrix of the edge {a} -> {b} is not positive definite: PCM needs its \
+         inverse as a covariance (read the file with --information nearest-pd to repair it)"
+    )]
     Covariance { a: String, b: String },
 }
 
@@ -81,7 +91,7 @@ impl Odometry {
         // (robot, index) -> (measurement to index + 1, its covariance).
         let mut steps: BTreeMap<(Option<u8>, u64), Uncertain> = BTreeMap::new();
         let keys = graph.keys();
-        for e in &graph.edges {
+        for e in graph.edges() {
             if graph.edge_class(e) != EdgeClass::Odometry {
                 continue;
             }
@@ -276,10 +286,36 @@ pub struct Pcm {
     pub problems: BTreeMap<(Option<u8>, Option<u8>), PairProblem>,
 }
 
+/// Two closures between the same keys are copies of one when their measurements differ by
+/// a squared Mahalanobis distance `eᵀ(Σ₁ + Σ₂)⁻¹e` below this, `e = Log(z₁⁻¹ z₂)`: a
+/// thousandth of a standard deviation. That absorbs the rounding of a text round trip or of
+/// reversing a closure, while two real measurements of one place differ by O(1).
+pub const DUPLICATE_D2: f64 = 1e-6;
+
+/// Whether `b` is a copy of `a` (both oriented the same way, see [`DUPLICATE_D2`]).
+fn is_copy(a: &Closure, b: &Closure) -> bool {
+    if a.u != b.u || a.v != b.v {
+        return false;
+    }
+    if a.measured == b.measured {
+        return true;
+    }
+    let e: Tangent = (a.measured.inverse() * b.measured).log();
+    match (a.covariance + b.covariance).cholesky() {
+        Some(c) => e.dot(&c.solve(&e)) <= DUPLICATE_D2,
+        None => false,
+    }
+}
+
 /// Summary of a PCM run.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PcmSummary {
+    /// Distinct candidate closures over all runs (copies count once).
     pub closures: usize,
+    /// Indices into this run's `graph.edges()` of candidate edges that copy an earlier
+    /// edge of the same graph (see the module docs): not candidates of their own, their
+    /// keys are in `inliers` exactly when the closure they copy is kept.
+    pub duplicates: Vec<usize>,
     pub consistent_pairs: usize,
     /// Kept closures as (key, key), in the direction they were given.
     pub inliers: Vec<(u64, u64)>,
@@ -313,7 +349,21 @@ impl Pcm {
         };
         let mut new: BTreeMap<(Option<u8>, Option<u8>), Vec<Closure>> = BTreeMap::new();
         let mut total = 0;
-        for e in graph.edges.iter().filter(|e| graph.edge_class(e) == wanted) {
+        // Closures stored by earlier runs and the ones of this graph so far, by keys: an
+        // edge that copies one of this graph is a duplicate; one that matches only a stored
+        // closure is that closure, handed in again with the grown graph.
+        let mut stored: BTreeMap<(u64, u64), Vec<&Closure>> = BTreeMap::new();
+        for p in self.problems.values() {
+            for c in &p.closures {
+                stored.entry((c.u, c.v)).or_default().push(c);
+            }
+        }
+        let mut this_run: BTreeMap<(u64, u64), Vec<Closure>> = BTreeMap::new();
+        let mut duplicates = Vec::new();
+        for (n, e) in graph.edges().iter().enumerate() {
+            if graph.edge_class(e) != wanted {
+                continue;
+            }
             total += 1;
             let c = closure_of(keys[e.i], keys[e.j], e.measured, &e.information)?;
             // Orient every closure of a pair the same way (lower robot, then lower index first).
@@ -322,14 +372,19 @@ impl Pcm {
             } else {
                 c.reversed()
             };
-            let pair = (key::robot(c.u), key::robot(c.v));
-            let known = self.problems.get(&pair).is_some_and(|p| {
-                p.closures
-                    .iter()
-                    .any(|k| k.u == c.u && k.v == c.v && k.measured == c.measured)
-            });
+            let seen = this_run.entry((c.u, c.v)).or_default();
+            if seen.iter().any(|k| is_copy(k, &c)) {
+                duplicates.push(n);
+                continue;
+            }
+            seen.push(c.clone());
+            let known = stored
+                .get(&(c.u, c.v))
+                .is_some_and(|ks| ks.iter().any(|k| is_copy(k, &c)));
             if !known {
-                new.entry(pair).or_default().push(c);
+                new.entry((key::robot(c.u), key::robot(c.v)))
+                    .or_default()
+                    .push(c);
             }
         }
         if total == 0 {
@@ -346,6 +401,7 @@ impl Pcm {
         }
         let mut s = PcmSummary {
             closures: 0,
+            duplicates,
             consistent_pairs: 0,
             inliers: Vec::new(),
             clique_size: 0,

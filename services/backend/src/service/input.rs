@@ -7,7 +7,7 @@
 
 use doorslam_geometry::information::matrix_from_upper;
 use doorslam_geometry::key::{self, MAX_INDEX, MAX_ROBOTS};
-use doorslam_geometry::{check_information, pose_from_array, TangentMatrix, SE3};
+use doorslam_geometry::{check_information, pose_from_array, InformationCheck, TangentMatrix, SE3};
 use doorslam_ipc::{
     Keyframe, KeyframeSource, LoopClosure, OdometryEdge, Topic, MAX_KEYFRAME_FEATURES,
 };
@@ -96,7 +96,8 @@ impl Check {
         upper: &[f64; 21],
     ) -> Result<TangentMatrix, InputError> {
         let m = matrix_from_upper(upper);
-        check_information(&m, 6).map_err(|e| self.fail(field, e.to_string()))?;
+        check_information(&m, 6, InformationCheck::PositiveDefinite)
+            .map_err(|e| self.fail(field, e.to_string()))?;
         Ok(m)
     }
 }

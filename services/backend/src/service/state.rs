@@ -328,8 +328,18 @@ impl BackendState {
         ) else {
             return;
         };
-        self.odometry.insert((e.from, e.to));
-        self.graph.add_edge(a, b, e.relative, e.information);
+        // The input checks enforce what add_edge checks (distinct keyframes, finite
+        // measurement, positive-definite information), so a refusal here is a bug: logged.
+        match self.graph.add_edge(a, b, e.relative, e.information) {
+            Ok(_) => {
+                self.odometry.insert((e.from, e.to));
+            }
+            Err(err) => tracing::error!(
+                from = e.from,
+                to = e.to,
+                "backend: odometry edge refused by the graph: {err}"
+            ),
+        }
     }
 
     /// Applies every waiting edge whose keyframes have arrived.
