@@ -1,0 +1,99 @@
+//! The workspace's shape, as the groundwork issue fixed it: dependencies run one way
+//! (services never depend on the simulator), every external crate is pinned once, and the
+//! Lie-group math exists in one crate. Read from the manifests and sources, so a change
+//! that breaks a rule fails here with the file that broke it.
+
+use std::path::{Path, PathBuf};
+
+/// Every `Cargo.toml` of the workspace except the root's.
+fn member_manifests() -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for dir in ["services", "ipc-schema", "hil"] {
+        collect(Path::new(dir), &mut out, &|p| {
+            p.file_name().is_some_and(|n| n == "Cargo.toml")
+        });
+    }
+    assert!(out.len() >= 8, "found only {out:?}");
+    out
+}
+
+fn collect(dir: &Path, out: &mut Vec<PathBuf>, keep: &dyn Fn(&Path) -> bool) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let p = e.path();
+        if p.is_dir() && !p.ends_with("target") {
+            collect(&p, out, keep);
+        } else if keep(&p) {
+            out.push(p);
+        }
+    }
+}
+
+fn dependency_lines(manifest: &str) -> Vec<String> {
+    let mut in_deps = false;
+    let mut lines = Vec::new();
+    for line in manifest.lines().map(str::trim) {
+        if line.starts_with('[') {
+            in_deps = line.ends_with("dependencies]");
+        } else if in_deps && !line.is_empty() && !line.starts_with('#') {
+            lines.push(line.to_string());
+        }
+    }
+    lines
+}
+
+#[test]
+fn services_never_depend_on_the_simulator() {
+    for m in member_manifests() {
+        if m.starts_with("hil") {
+            continue;
+        }
+        let text = std::fs::read_to_string(&m).unwrap();
+        for line in dependency_lines(&text) {
+            assert!(
+                !line.starts_with("doorslam-hil"),
+                "{}: {line}: services and ipc-schema must not depend on hil",
+                m.display()
+            );
+        }
+    }
+}
+
+#[test]
+fn every_external_crate_is_pinned_once_in_the_workspace() {
+    for m in member_manifests() {
+        let text = std::fs::read_to_string(&m).unwrap();
+        for line in dependency_lines(&text) {
+            assert!(
+                line.contains(".workspace = true") || line.contains("workspace = true"),
+                "{}: {line}: pin it in the root [workspace.dependencies] and inherit it",
+                m.display()
+            );
+        }
+    }
+}
+
+#[test]
+fn lie_group_math_exists_once() {
+    let mut sources = Vec::new();
+    for dir in ["services", "ipc-schema", "hil", "src"] {
+        collect(Path::new(dir), &mut sources, &|p| {
+            p.extension().is_some_and(|e| e == "rs")
+        });
+    }
+    for s in sources {
+        if s.starts_with("services/geometry") {
+            continue;
+        }
+        let text = std::fs::read_to_string(&s).unwrap();
+        for needle in ["impl LieGroup for", "fn so3_", "fn right_jacobian", "fn hat("] {
+            assert!(
+                !text.contains(needle),
+                "{}: `{needle}`: SO(3)/SE(3) math belongs in services/geometry",
+                s.display()
+            );
+        }
+    }
+}
