@@ -88,7 +88,12 @@ fn lie_group_math_exists_once() {
             continue;
         }
         let text = std::fs::read_to_string(&s).unwrap();
-        for needle in ["impl LieGroup for", "fn so3_", "fn right_jacobian", "fn hat("] {
+        for needle in [
+            "impl LieGroup for",
+            "fn so3_",
+            "fn right_jacobian",
+            "fn hat(",
+        ] {
             assert!(
                 !text.contains(needle),
                 "{}: `{needle}`: SO(3)/SE(3) math belongs in services/geometry",
