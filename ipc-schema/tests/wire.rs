@@ -435,6 +435,50 @@ fn limits_are_checked_before_allocation() {
         },
     );
     assert!(matches!(plain_key.encode(), Err(WireError::Invalid { .. })));
+    // Orders and ranges the decoder would refuse are refused on the way out too.
+    let refused = |body: Body| {
+        let m = Message::new(header("alpha", 0), body);
+        assert!(
+            matches!(m.encode(), Err(WireError::Invalid { .. })),
+            "{m:?}"
+        );
+    };
+    refused(Body::Hello(Hello { robot: 26 }));
+    let (d1, d0) = (descriptor(1), descriptor(0));
+    refused(Body::Descriptors(Descriptors {
+        descriptors: vec![d1.clone(), d0],
+    }));
+    refused(Body::Descriptors(Descriptors {
+        descriptors: vec![d1.clone(), d1.clone()],
+    }));
+    let other_robot = Descriptor {
+        key: key(1, 5),
+        ..d1.clone()
+    };
+    refused(Body::Descriptors(Descriptors {
+        descriptors: vec![d1, other_robot],
+    }));
+    refused(Body::Matches(Matches {
+        matches: vec![Match {
+            query: key(0, 1),
+            candidate: key(1, 1),
+            distance: f32::NAN,
+        }],
+    }));
+    let r = |start, end| std::ops::Range { start, end };
+    for received in [
+        vec![r(5, 6)],
+        vec![r(8, 8)],
+        vec![r(7, 9), r(9, 10)],
+        vec![r(9, 10), r(7, 8)],
+    ] {
+        refused(Body::Ack(Ack {
+            epoch: 0,
+            kind: Kind::Matches,
+            next: 5,
+            received,
+        }));
+    }
     // Oversized input is refused before anything is read.
     assert!(matches!(
         Message::decode(&vec![1; MAX_MESSAGE_BYTES + 1]),
