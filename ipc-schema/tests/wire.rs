@@ -108,6 +108,8 @@ fn samples() -> Vec<Message> {
         Message::new(
             header("alpha", 1),
             Descriptors {
+                robot: 0,
+                keyframes: 5..9,
                 descriptors: vec![descriptor(7)],
             },
         ),
@@ -167,12 +169,12 @@ fn hex(b: &[u8]) -> String {
 const PINNED: [&str; 7] = [
     // hello (11 bytes)
     "010105616c706861030000",
-    // descriptors (145 bytes)
+    // descriptors (147 bytes)
     concat!(
-        "010205616c70686103010100075ce3803a4317e8bd9a86818fabd3012f56727f7a654216e7bc9a85",
-        "828facd4023057737f7a644115e6bb9985828facd4033058737f79644014e6ba99858290add50331",
-        "58737f79634014e5ba98858290aed6043259747f79633f13e4b998848291aed7053359747f79623e",
-        "12e3b897848291afd806345a747f78613d11e2b897848291b0",
+        "010205616c706861030100050401025ce3803a4317e8bd9a86818fabd3012f56727f7a654216e7bc",
+        "9a85828facd4023057737f7a644115e6bb9985828facd4033058737f79644014e6ba99858290add5",
+        "033158737f79634014e5ba98858290aed6043259747f79633f13e4b998848291aed7053359747f79",
+        "623e12e3b897848291afd806345a747f78613d11e2b897848291b0",
     ),
     // matches (20 bytes)
     "010305627261766f030201000701ac020000003e",
@@ -264,6 +266,8 @@ fn sizes_against_the_targets() {
     let batch = Message::new(
         header("alpha", 1),
         Descriptors {
+            robot: 0,
+            keyframes: 100..110,
             descriptors: (100..110).map(descriptor).collect(),
         },
     );
@@ -445,19 +449,21 @@ fn limits_are_checked_before_allocation() {
     };
     refused(Body::Hello(Hello { robot: 26 }));
     let (d1, d0) = (descriptor(1), descriptor(0));
-    refused(Body::Descriptors(Descriptors {
-        descriptors: vec![d1.clone(), d0],
-    }));
-    refused(Body::Descriptors(Descriptors {
-        descriptors: vec![d1.clone(), d1.clone()],
-    }));
+    let batch = |descriptors| {
+        Body::Descriptors(Descriptors {
+            robot: 0,
+            keyframes: 0..10,
+            descriptors,
+        })
+    };
+    refused(batch(vec![d1.clone(), d0]));
+    refused(batch(vec![d1.clone(), d1.clone()]));
+    refused(batch(vec![descriptor(10)]));
     let other_robot = Descriptor {
         key: key(1, 5),
         ..d1.clone()
     };
-    refused(Body::Descriptors(Descriptors {
-        descriptors: vec![d1, other_robot],
-    }));
+    refused(batch(vec![d1, other_robot]));
     refused(Body::Matches(Matches {
         matches: vec![Match {
             query: key(0, 1),
@@ -584,17 +590,20 @@ fn arb_descriptors() -> impl Strategy<Value = Descriptors> {
     (
         0u8..26,
         0u64..100_000,
+        0u64..3,
         prop::collection::vec(
             (1u64..300, 0f32..1.0, prop::array::uniform32(any::<i8>())),
             0..12,
         ),
     )
-        .prop_map(|(robot, start, entries)| {
+        .prop_map(|(robot, start, after, entries)| {
             let mut index = start;
-            let descriptors = entries
+            let descriptors: Vec<_> = entries
                 .into_iter()
-                .map(|(step, scale, v)| {
-                    index += step;
+                .enumerate()
+                .map(|(i, (step, scale, v))| {
+                    // The first descriptor may be the range's first keyframe.
+                    index += if i == 0 { step - 1 } else { step };
                     Descriptor {
                         key: key(robot, index),
                         scale,
@@ -602,7 +611,16 @@ fn arb_descriptors() -> impl Strategy<Value = Descriptors> {
                     }
                 })
                 .collect();
-            Descriptors { descriptors }
+            let end = if descriptors.is_empty() {
+                start
+            } else {
+                index + 1
+            } + after;
+            Descriptors {
+                robot,
+                keyframes: start..end,
+                descriptors,
+            }
         })
 }
 

@@ -43,10 +43,11 @@ fn body(u: &mut Unstructured<'_>) -> Result<Option<Body>> {
         }),
         1 => {
             let robot = u.int_in_range(0..=25u8)?;
-            let mut index = u.int_in_range(0..=1u64 << 40)?;
+            let start = u.int_in_range(0..=1u64 << 40)?;
+            let mut index = start;
             let mut descriptors = Vec::new();
-            for _ in 0..u.int_in_range(0..=20)? {
-                index += u.int_in_range(1..=1000)?;
+            for i in 0..u.int_in_range(0..=20)? {
+                index += u.int_in_range(u64::from(i > 0)..=1000)?;
                 let v: Vec<f32> = (0..DESCRIPTOR_DIM)
                     .map(|_| u.arbitrary())
                     .collect::<Result<_>>()?;
@@ -55,7 +56,12 @@ fn body(u: &mut Unstructured<'_>) -> Result<Option<Body>> {
                     Err(_) => return Ok(None),
                 }
             }
-            Body::Descriptors(Descriptors { descriptors })
+            let end = index + 1 + u.int_in_range(0..=1000)?;
+            Body::Descriptors(Descriptors {
+                robot,
+                keyframes: start..end,
+                descriptors,
+            })
         }
         2 => {
             let mut matches = Vec::new();

@@ -104,15 +104,22 @@ pub struct Hello {
     pub robot: u8,
 }
 
-/// A batch of place descriptors (rendezvous step 1), keys of the sender's keyframes in
-/// strictly increasing order: the batch covers keyframes `first key ..= last key` and is
-/// acknowledged by its sequence.
+/// A batch of place descriptors (rendezvous step 1): those of the sender's keyframes with
+/// indices in `keyframes`, in strictly increasing key order. The range says what the batch
+/// covers even where a keyframe has no descriptor, so the receiver can acknowledge "every
+/// descriptor of keyframes below `keyframes.end`" and the sender resumes from there at the
+/// next meeting, whatever was lost or which epoch it was sent in.
 ///
-/// Layout: count (varint); if count > 0, the robot byte of the keys, then per descriptor
-/// the index (first: absolute; then the difference from the previous one, ≥ 1, varint),
-/// the scale (f32) and 128 int8 values: 133 bytes for consecutive keyframes.
+/// Layout: robot (u8), range start and length (varints), count (varint), then per
+/// descriptor the index (first: offset from the range start; then the difference from the
+/// previous one, ≥ 1; varint), the scale (f32) and 128 int8 values: 133 bytes for
+/// consecutive keyframes.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Descriptors {
+    /// The sender's robot number (0 = 'a'): the robot of every key in the batch.
+    pub robot: u8,
+    /// Keyframe indices covered, `start..end`.
+    pub keyframes: core::ops::Range<u64>,
     pub descriptors: Vec<Descriptor>,
 }
 
@@ -489,35 +496,40 @@ impl Message {
 }
 
 fn write_descriptors(s: &mut impl Sink, d: &Descriptors) -> Result<(), WireError> {
+    let range = &d.keyframes;
+    if d.robot >= doorslam_geometry::key::MAX_ROBOTS
+        || range.end < range.start
+        || range.end > doorslam_geometry::key::MAX_INDEX + 1
+    {
+        return Err(WireError::invalid(
+            "descriptor range",
+            s.offset(),
+            "robot not below 26, or not a range of key indices",
+        ));
+    }
+    s.u8(d.robot);
+    s.varint(range.start);
+    s.varint(range.end - range.start);
     check_count(s, "descriptor count", d.descriptors.len(), MAX_DESCRIPTORS)?;
     s.varint(d.descriptors.len() as u64);
-    let Some(first) = d.descriptors.first() else {
-        return Ok(());
-    };
-    let robot = doorslam_geometry::key::robot(first.key)
-        .ok_or_else(|| WireError::invalid("descriptor key", s.offset(), "not a multi-robot key"))?;
-    s.u8(robot);
     let mut previous: Option<u64> = None;
     for e in &d.descriptors {
-        if doorslam_geometry::key::robot(e.key) != Some(robot) {
+        let index = doorslam_geometry::key::index(e.key);
+        let step = match previous {
+            None => index.checked_sub(range.start),
+            Some(p) => index.checked_sub(p).filter(|&step| step > 0),
+        };
+        let (Some(step), true) = (
+            step,
+            doorslam_geometry::key::robot(e.key) == Some(d.robot) && range.contains(&index),
+        ) else {
             return Err(WireError::invalid(
                 "descriptor key",
                 s.offset(),
-                "all descriptors of a batch are of one robot",
+                "keys must be of the batch's robot, in its range, strictly increasing",
             ));
-        }
-        let index = doorslam_geometry::key::index(e.key);
-        match previous {
-            None => s.varint(index),
-            Some(p) if index > p => s.varint(index - p),
-            Some(_) => {
-                return Err(WireError::invalid(
-                    "descriptor key",
-                    s.offset(),
-                    "keys are not strictly increasing",
-                ))
-            }
-        }
+        };
+        s.varint(step);
         previous = Some(index);
         if !(e.scale.is_finite() && e.scale >= 0.0) {
             return Err(WireError::invalid(
@@ -533,26 +545,40 @@ fn write_descriptors(s: &mut impl Sink, d: &Descriptors) -> Result<(), WireError
 }
 
 fn read_descriptors(r: &mut Reader<'_>) -> Result<Descriptors, WireError> {
+    let offset = r.offset();
+    let robot = r.u8("descriptor robot")?;
+    if robot >= doorslam_geometry::key::MAX_ROBOTS {
+        return Err(WireError::invalid(
+            "descriptor robot",
+            offset,
+            "not below 26",
+        ));
+    }
+    let offset = r.offset();
+    let start = r.varint("descriptor range")?;
+    let len = r.varint("descriptor range")?;
+    let end = start
+        .checked_add(len)
+        .filter(|&end| end <= doorslam_geometry::key::MAX_INDEX + 1)
+        .ok_or_else(|| {
+            WireError::invalid("descriptor range", offset, "beyond the largest key index")
+        })?;
     let n = r.count("descriptor count", MAX_DESCRIPTORS, 1 + 4 + DESCRIPTOR_DIM)?;
     let mut descriptors = Vec::with_capacity(n);
-    if n == 0 {
-        return Ok(Descriptors { descriptors });
-    }
-    let robot = r.u8("descriptor robot")?;
-    let mut index = 0u64;
+    let mut index = start;
     for i in 0..n {
         let offset = r.offset();
         let step = r.varint("descriptor key")?;
-        if i > 0 && step == 0 {
-            return Err(WireError::invalid(
-                "descriptor key",
-                offset,
-                "keys are not strictly increasing",
-            ));
+        match index.checked_add(step) {
+            Some(next) if next < end && (i == 0 || step > 0) => index = next,
+            _ => {
+                return Err(WireError::invalid(
+                    "descriptor key",
+                    offset,
+                    "keys must be in the batch's range, strictly increasing",
+                ))
+            }
         }
-        index = index
-            .checked_add(step)
-            .ok_or_else(|| WireError::invalid("descriptor key", offset, "index overflows"))?;
         let key = doorslam_geometry::key::symbol(robot, index)
             .map_err(|e| WireError::invalid("descriptor key", offset, e))?;
         let offset = r.offset();
@@ -569,7 +595,11 @@ fn read_descriptors(r: &mut Reader<'_>) -> Result<Descriptors, WireError> {
             .map(|b| b as i8);
         descriptors.push(Descriptor { key, scale, values });
     }
-    Ok(Descriptors { descriptors })
+    Ok(Descriptors {
+        robot,
+        keyframes: start..end,
+        descriptors,
+    })
 }
 
 fn write_ack(s: &mut impl Sink, a: &Ack) -> Result<(), WireError> {
