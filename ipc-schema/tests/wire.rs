@@ -253,6 +253,17 @@ fn quantized_values_stay_close() {
     // Indefinite information is refused on the way out.
     m[(5, 5)] = -1.0;
     assert!(Information::from_matrix(&m).is_err());
+    // Dynamic range: entries of L far below its largest become subnormal halves and lose
+    // relative precision (0.3 % on Ω at a condition number of 1e10); beyond ~1e15 the
+    // smallest direction would round to zero, and the matrix is refused.
+    let diagonal = |d: f64| {
+        doorslam_geometry::information::matrix_from_upper(&upper_from_diagonal([
+            d, 1.0, 1.0, 1.0, 1.0, 1.0,
+        ]))
+    };
+    let wide = Information::from_matrix(&diagonal(1e10)).unwrap();
+    assert!((wide.matrix()[(1, 1)] - 1.0).abs() < 5e-3);
+    assert!(Information::from_matrix(&diagonal(1e16)).is_err());
 }
 
 fn print_size(what: &str, bytes: usize, target: usize) {
