@@ -5,12 +5,16 @@
 
 use std::path::{Path, PathBuf};
 
-/// Every `Cargo.toml` of the workspace except the root's.
+/// Every `Cargo.toml` of the workspace except the root's. A manifest with its own
+/// `[workspace]` table (the fuzz crate, excluded from the workspace) is not a member: it
+/// cannot inherit the workspace's pins.
 fn member_manifests() -> Vec<PathBuf> {
     let mut out = Vec::new();
     for dir in ["services", "ipc-schema", "hil"] {
         collect(Path::new(dir), &mut out, &|p| {
             p.file_name().is_some_and(|n| n == "Cargo.toml")
+                && !std::fs::read_to_string(p)
+                    .is_ok_and(|t| t.lines().any(|l| l.trim() == "[workspace]"))
         });
     }
     assert!(out.len() >= 8, "found only {out:?}");

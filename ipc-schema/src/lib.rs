@@ -4,6 +4,7 @@
 //! memory. Every type here is `#[repr(C)]`, fixed-size and [`ZeroCopySend`]: a publisher
 //! loans an uninitialized sample, writes it in place once, and subscribers read the
 //! publisher's memory. A stereo pair is never serialized or copied between processes.
+//! The messages that cross *between* robots are the exception, in [`wire`].
 //!
 //! - [`shm`]: the payload types ([`StereoFrame`], ...) and their compile-time maxima.
 //! - [`service`]: service names per robot (`doorslam/<robot>/<topic>`), opening the
@@ -11,17 +12,19 @@
 //!
 //! - [`channel`]: typed senders/receivers with event notification, the back-pressure
 //!   policy (frames lossy, everything else reliable) and crash recovery (history).
+//! - [`wire`]: the inter-robot messages (Zenoh): versioned header, compact layouts,
+//!   bounded decoding that validates with `doorslam-geometry`'s rules.
 //!
 //! Poses and information matrices travel as plain arrays (`[x y z qx qy qz qw]`, the
 //! 21-value upper triangle); their conversions and the rules they must satisfy live in
-//! `doorslam-geometry` (`pose`, `information`), so this crate has no math dependency.
-//!
-//! Inter-robot wire messages (Zenoh) will live in `wire/` beside these.
+//! `doorslam-geometry` (`pose`, `information`); the shared-memory types use no math from
+//! it, the wire messages validate with it.
 
 pub mod channel;
 pub mod lifecycle;
 pub mod service;
 pub mod shm;
+pub mod wire;
 
 pub use channel::{Receiver, Sender, RELIABLE_BUFFER, RELIABLE_HISTORY};
 pub use lifecycle::{sd_notify, Lifecycle};

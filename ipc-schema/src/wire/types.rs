@@ -1,0 +1,451 @@
+//! The values messages are made of, in the exact form they travel: robot ids, multi-robot
+//! keys, poses, information matrices, place descriptors and verification features.
+//!
+//! Each quantized type is built from the full-precision value by a constructor that
+//! checks it with `doorslam-geometry`'s rules, and stores the bits that go on the wire, so
+//! encoding cannot fail on it and a decoded value equals the encoded one exactly.
+
+use doorslam_geometry::information::matrix_from_upper;
+use doorslam_geometry::key;
+use doorslam_geometry::{
+    check_information, pose_from_array, InformationCheck, InformationError, PoseError,
+    TangentMatrix, SE3,
+};
+
+use super::codec::{f16_from_f32, f32_from_f16, Reader, Sink};
+use super::WireError;
+use crate::shm::Feature;
+
+/// Longest robot id (bytes), as for `robot.id` in robot.toml.
+pub const MAX_ROBOT_ID_LEN: usize = 32;
+
+/// A robot's id from its config: 1–32 characters of `[a-z0-9_-]`.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct RobotId(String);
+
+/// Why a value cannot be put in a message.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum QuantizeError {
+    #[error("robot id {0:?}: use 1-32 characters of [a-z0-9_-]")]
+    RobotId(String),
+    #[error("{field} = {value} is not finite")]
+    NonFinite { field: &'static str, value: f64 },
+    #[error("{field} = {value} is outside {min}..{max}")]
+    OutOfRange {
+        field: &'static str,
+        value: f64,
+        min: f64,
+        max: f64,
+    },
+    #[error("{field} has {got} values, the wire format carries {want}")]
+    WrongLength {
+        field: &'static str,
+        got: usize,
+        want: usize,
+    },
+}
+
+fn valid_robot_id(id: &[u8]) -> bool {
+    (1..=MAX_ROBOT_ID_LEN).contains(&id.len())
+        && id
+            .iter()
+            .all(|&c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == b'_' || c == b'-')
+}
+
+impl RobotId {
+    pub fn new(id: &str) -> Result<Self, QuantizeError> {
+        if valid_robot_id(id.as_bytes()) {
+            Ok(Self(id.to_owned()))
+        } else {
+            Err(QuantizeError::RobotId(id.to_owned()))
+        }
+    }
+
+    pub fn as_str(&self) -> &str {
+        &self.0
+    }
+
+    /// One length byte, then the id's bytes.
+    pub(crate) fn write(&self, s: &mut impl Sink) {
+        s.u8(self.0.len() as u8);
+        s.put(self.0.as_bytes());
+    }
+
+    pub(crate) fn read(r: &mut Reader<'_>) -> Result<Self, WireError> {
+        let offset = r.offset();
+        let len = r.u8("sender length")? as usize;
+        if len > MAX_ROBOT_ID_LEN {
+            return Err(WireError::TooLong {
+                field: "sender length",
+                offset,
+                len: len as u64,
+                max: MAX_ROBOT_ID_LEN as u64,
+            });
+        }
+        let bytes = r.take("sender", len)?;
+        if !valid_robot_id(bytes) {
+            return Err(WireError::invalid(
+                "sender",
+                offset,
+                "not 1-32 characters of [a-z0-9_-]",
+            ));
+        }
+        // Checked ASCII above, so this cannot fail; map rather than unwrap all the same.
+        let s = core::str::from_utf8(bytes).map_err(|e| WireError::invalid("sender", offset, e))?;
+        Ok(Self(s.to_owned()))
+    }
+}
+
+impl core::fmt::Display for RobotId {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+/// A multi-robot key (`robot_char << 56 | index`, see `doorslam_geometry::key`) travels as
+/// the robot number (one byte, 0 = 'a') and the index (varint): 2–4 bytes for a real
+/// flight instead of the 9 a varint of the whole key takes. A plain single-robot index
+/// cannot be sent: every key on the wire names its robot.
+pub(crate) fn write_key(s: &mut impl Sink, field: &'static str, k: u64) -> Result<(), WireError> {
+    let robot = key::robot(k).ok_or_else(|| {
+        WireError::invalid(field, s.offset(), "not a multi-robot key (no robot letter)")
+    })?;
+    s.u8(robot);
+    s.varint(key::index(k));
+    Ok(())
+}
+
+pub(crate) fn read_key(r: &mut Reader<'_>, field: &'static str) -> Result<u64, WireError> {
+    let offset = r.offset();
+    let robot = r.u8(field)?;
+    let index = r.varint(field)?;
+    key::symbol(robot, index).map_err(|e| WireError::invalid(field, offset, e))
+}
+
+/// A pose `[x y z qx qy qz qw]` as seven f32 (28 bytes): translation in metres, rotation
+/// a unit quaternion (checked by [`pose_from_array`] and normalized for use).
+///
+/// Why f32: at 1 km from the origin its resolution is 0.06 mm, and a quaternion
+/// component's 6e-8 is 1e-7 rad; both are orders of magnitude below odometry and PnP
+/// noise (centimetres, 0.1°) and below the consensus thresholds of the distributed
+/// back-end, while f64 would cost 28 more bytes per pose.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Pose {
+    raw: [f32; 7],
+    se3: SE3,
+}
+
+impl Pose {
+    /// From the wire values; refused unless [`pose_from_array`] accepts them.
+    pub fn from_array(raw: [f32; 7]) -> Result<Self, PoseError> {
+        let se3 = pose_from_array(&raw.map(f64::from))?;
+        Ok(Self { raw, se3 })
+    }
+
+    /// Rounds a pose to the wire's f32.
+    pub fn from_se3(p: &SE3) -> Result<Self, PoseError> {
+        Self::from_array(doorslam_geometry::pose_to_array(p).map(|v| v as f32))
+    }
+
+    /// The values as sent, `[x y z qx qy qz qw]`.
+    pub fn raw(&self) -> [f32; 7] {
+        self.raw
+    }
+
+    /// The pose (quaternion normalized).
+    pub fn se3(&self) -> &SE3 {
+        &self.se3
+    }
+
+    pub(crate) fn write(&self, s: &mut impl Sink) {
+        for v in self.raw {
+            s.f32(v);
+        }
+    }
+
+    pub(crate) fn read(r: &mut Reader<'_>, field: &'static str) -> Result<Self, WireError> {
+        let offset = r.offset();
+        let mut raw = [0f32; 7];
+        for v in &mut raw {
+            *v = r.f32(field)?;
+        }
+        Self::from_array(raw).map_err(|e| WireError::invalid(field, offset, e))
+    }
+}
+
+/// Bytes of a [`Pose`] on the wire.
+pub const POSE_BYTES: usize = 28;
+
+/// An information matrix (rotation-first tangent order, as in `doorslam_geometry`) as its
+/// Cholesky factor: `Ω = L Lᵀ`, `L` lower triangular, sent as one f32 scale and the 21
+/// entries of `L / scale` (row-major lower triangle: (0,0), (1,0), (1,1), (2,0), ...) as
+/// IEEE half floats: 46 bytes instead of 168 for 21 f64.
+///
+/// `L Lᵀ` is positive semi-definite whatever the bits; the decoder rebuilds Ω and checks it
+/// with [`check_information`] (positive definite). Halves keep 11 significant bits of an
+/// entry down to 6e-5 of the largest (Ω's entries keep about 3 significant digits: a noise
+/// model needs no more); smaller entries are subnormal halves with an absolute step of
+/// 6e-8 of the largest (0.3 % on Ω at a condition number of 1e10), and a matrix whose
+/// smallest direction would round to zero (condition number beyond ~1e15) is refused by
+/// [`Information::from_matrix`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct Information {
+    scale: f32,
+    factor: [u16; 21],
+    matrix: TangentMatrix,
+}
+
+/// Bytes of an [`Information`] on the wire.
+pub const INFORMATION_BYTES: usize = 4 + 2 * 21;
+
+impl Information {
+    /// Factors and rounds `information`, which must pass [`check_information`] (positive
+    /// definite) before and after rounding.
+    pub fn from_matrix(information: &TangentMatrix) -> Result<Self, InformationError> {
+        check_information(information, 6, InformationCheck::PositiveDefinite)?;
+        let l = information
+            .cholesky()
+            .ok_or(InformationError::NotPositiveDefinite)?
+            .l();
+        let mut lower = [0f64; 21];
+        let mut k = 0;
+        for r in 0..6 {
+            for c in 0..=r {
+                lower[k] = l[(r, c)];
+                k += 1;
+            }
+        }
+        let max = lower.iter().fold(0f64, |m, v| m.max(v.abs()));
+        let scale = max as f32;
+        if !(scale.is_finite() && scale > 0.0) {
+            return Err(InformationError::NotPositiveDefinite);
+        }
+        let factor = lower.map(|v| f16_from_f32((v / f64::from(scale)) as f32));
+        Self::from_parts(scale, factor)
+    }
+
+    /// From the upper triangle layout of `doorslam_geometry::information` (21 values).
+    pub fn from_upper(upper: &[f64; 21]) -> Result<Self, InformationError> {
+        Self::from_matrix(&matrix_from_upper(upper))
+    }
+
+    /// From the wire values: rebuilds Ω and checks it.
+    pub fn from_parts(scale: f32, factor: [u16; 21]) -> Result<Self, InformationError> {
+        if !scale.is_finite() {
+            return Err(InformationError::NonFinite {
+                row: 0,
+                col: 0,
+                value: f64::from(scale),
+            });
+        }
+        let mut l = TangentMatrix::zeros();
+        let mut k = 0;
+        for r in 0..6 {
+            for c in 0..=r {
+                l[(r, c)] = f64::from(f32_from_f16(factor[k])) * f64::from(scale);
+                k += 1;
+            }
+        }
+        // Ω_rc = Σ_k L_rk L_ck, summed in the same order for (r, c) and (c, r): exactly
+        // symmetric. Non-finite entries surface in the check below.
+        let mut matrix = TangentMatrix::zeros();
+        for r in 0..6 {
+            for c in 0..6 {
+                matrix[(r, c)] = (0..6).map(|k| l[(r, k)] * l[(c, k)]).sum();
+            }
+        }
+        check_information(&matrix, 6, InformationCheck::PositiveDefinite)?;
+        Ok(Self {
+            scale,
+            factor,
+            matrix,
+        })
+    }
+
+    /// Ω, 6×6, rotation first.
+    pub fn matrix(&self) -> &TangentMatrix {
+        &self.matrix
+    }
+
+    /// The wire values: scale and the half-float bits of `L / scale`.
+    pub fn parts(&self) -> (f32, [u16; 21]) {
+        (self.scale, self.factor)
+    }
+
+    pub(crate) fn write(&self, s: &mut impl Sink) {
+        s.f32(self.scale);
+        for h in self.factor {
+            s.u16(h);
+        }
+    }
+
+    pub(crate) fn read(r: &mut Reader<'_>, field: &'static str) -> Result<Self, WireError> {
+        let offset = r.offset();
+        let scale = r.f32(field)?;
+        let mut factor = [0u16; 21];
+        for h in &mut factor {
+            *h = r.u16(field)?;
+        }
+        Self::from_parts(scale, factor).map_err(|e| WireError::invalid(field, offset, e))
+    }
+}
+
+/// Dimension of a place descriptor on the wire (NetVLAD reduced by PCA, L2-normalized).
+/// Another dimension is another wire version.
+pub const DESCRIPTOR_DIM: usize = 128;
+
+/// One keyframe's place descriptor, int8-quantized with one scale: value `i` is
+/// `values[i] as f32 * scale`. With `scale = max |v| / 127` the rounding error of each
+/// component is at most `scale / 2` (≤ 0.004 for an L2-normalized vector, against a match
+/// threshold of 0.13–0.15 on the whole distance).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Descriptor {
+    /// Key of the keyframe (the sender's robot).
+    pub key: u64,
+    /// Size of one quantization step (≥ 0, finite).
+    pub scale: f32,
+    pub values: [i8; DESCRIPTOR_DIM],
+}
+
+impl Descriptor {
+    /// Quantizes a `DESCRIPTOR_DIM`-long float descriptor.
+    pub fn quantize(key: u64, v: &[f32]) -> Result<Self, QuantizeError> {
+        if v.len() != DESCRIPTOR_DIM {
+            return Err(QuantizeError::WrongLength {
+                field: "descriptor",
+                got: v.len(),
+                want: DESCRIPTOR_DIM,
+            });
+        }
+        if let Some(&x) = v.iter().find(|x| !x.is_finite()) {
+            return Err(QuantizeError::NonFinite {
+                field: "descriptor",
+                value: f64::from(x),
+            });
+        }
+        let max = v.iter().fold(0f32, |m, x| m.max(x.abs()));
+        let scale = max / 127.0;
+        let values = std::array::from_fn(|i| {
+            if scale > 0.0 {
+                (v[i] / scale).round().clamp(-127.0, 127.0) as i8
+            } else {
+                0
+            }
+        });
+        Ok(Self { key, scale, values })
+    }
+
+    /// The dequantized descriptor.
+    pub fn to_f32(&self) -> [f32; DESCRIPTOR_DIM] {
+        self.values.map(|q| f32::from(q) * self.scale)
+    }
+}
+
+/// Pixel coordinates travel in 1/16 pixel (u16): 0 to 4095.94 px, rounding error ≤ 1/32 px.
+pub const PIXEL_STEPS: f32 = 16.0;
+
+/// One feature for geometric verification (42 bytes): pixel in the left rectified image
+/// (u16 in 1/16 px, x then y), the 32-byte ORB descriptor, and the 3-D point in the camera
+/// frame (metres) as three IEEE half floats.
+///
+/// Why half floats for the point: their error is relative (≤ 1/2048 of the value: 0.5 mm
+/// at 1 m, 15 mm at 30 m), like stereo depth error, which grows with the square of depth
+/// (tens of centimetres at 30 m): the rounding stays far below the measurement noise at
+/// every depth, with no range limit to clip. Pixels need absolute precision, hence fixed
+/// point. PnP then sees errors well below its reprojection threshold (a few pixels).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct VerificationFeature {
+    /// x, y in 1/16 px.
+    pub pixel: [u16; 2],
+    pub descriptor: [u8; 32],
+    /// x, y, z in metres, half-float bits.
+    pub point: [u16; 3],
+}
+
+/// Bytes of a [`VerificationFeature`] on the wire.
+pub const FEATURE_BYTES: usize = 4 + 32 + 6;
+
+impl VerificationFeature {
+    /// Rounds a keyframe feature to the wire form; refused if a value is not finite, the
+    /// pixel is outside 0..4096 or the point beyond half-float range (65 km).
+    pub fn quantize(f: &Feature) -> Result<Self, QuantizeError> {
+        let mut pixel = [0u16; 2];
+        for (p, &v) in pixel.iter_mut().zip(&f.uv) {
+            if !v.is_finite() {
+                return Err(QuantizeError::NonFinite {
+                    field: "feature pixel",
+                    value: f64::from(v),
+                });
+            }
+            let q = (v * PIXEL_STEPS).round();
+            if !(0.0..=f32::from(u16::MAX)).contains(&q) {
+                return Err(QuantizeError::OutOfRange {
+                    field: "feature pixel",
+                    value: f64::from(v),
+                    min: 0.0,
+                    max: f64::from(u16::MAX) / f64::from(PIXEL_STEPS),
+                });
+            }
+            *p = q as u16;
+        }
+        let mut point = [0u16; 3];
+        for (p, &v) in point.iter_mut().zip(&f.point) {
+            let h = f16_from_f32(v);
+            if !f32_from_f16(h).is_finite() {
+                return Err(QuantizeError::OutOfRange {
+                    field: "feature point",
+                    value: f64::from(v),
+                    min: -65504.0,
+                    max: 65504.0,
+                });
+            }
+            *p = h;
+        }
+        Ok(Self {
+            pixel,
+            descriptor: f.descriptor,
+            point,
+        })
+    }
+
+    /// The feature as the front-end uses it.
+    pub fn to_feature(&self) -> Feature {
+        Feature {
+            uv: self.pixel.map(|p| f32::from(p) / PIXEL_STEPS),
+            point: self.point.map(f32_from_f16),
+            descriptor: self.descriptor,
+        }
+    }
+
+    pub(crate) fn write(&self, s: &mut impl Sink) {
+        for p in self.pixel {
+            s.u16(p);
+        }
+        s.put(&self.descriptor);
+        for p in self.point {
+            s.u16(p);
+        }
+    }
+
+    pub(crate) fn read(r: &mut Reader<'_>) -> Result<Self, WireError> {
+        let pixel = [r.u16("feature pixel")?, r.u16("feature pixel")?];
+        let descriptor = r.array("feature descriptor")?;
+        let mut point = [0u16; 3];
+        for p in &mut point {
+            let offset = r.offset();
+            *p = r.u16("feature point")?;
+            if !f32_from_f16(*p).is_finite() {
+                return Err(WireError::invalid(
+                    "feature point",
+                    offset,
+                    "half float is not finite",
+                ));
+            }
+        }
+        Ok(Self {
+            pixel,
+            descriptor,
+            point,
+        })
+    }
+}
