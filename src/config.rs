@@ -113,13 +113,9 @@ impl RobotConfig {
     }
 
     pub fn validate(&self) -> Result<()> {
+        // The id travels in every wire message's header: one rule for both (the wire's).
         let id = &self.robot.id;
-        let ok = !id.is_empty()
-            && id.len() <= 32
-            && id
-                .bytes()
-                .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == b'_' || c == b'-');
-        if !ok {
+        if doorslam_ipc::wire::RobotId::new(id).is_err() {
             bail!("robot.id = {id:?}: use 1-32 characters of [a-z0-9_-]");
         }
         if self.robot.index >= 26 {
