@@ -225,6 +225,11 @@ fn small_team_writes_a_replayable_folder() {
         assert_eq!(d.len(), 4);
         assert_eq!(d.load(3).unwrap().width, 94);
         assert!(d.truth.is_some());
+        // The simulator's calib.txt reads back as the camera that rendered the images.
+        let c = d.calibration().unwrap();
+        assert!((c.fx - camera.fx()).abs() < 1e-6 * camera.fx(), "{c:?}");
+        assert!((c.cx - camera.cx()).abs() < 1e-6, "{c:?}");
+        assert!((c.baseline_m - camera.baseline()).abs() < 1e-6, "{c:?}");
     }
     // A shorter run into the same folder would leave frames behind: refused.
     let shorter = FlightConfig {

@@ -17,6 +17,10 @@
 //! [`Dataset::split`] keeps one of N consecutive parts, as in the paper's KITTI 00
 //! experiment where one sequence plays the role of several robots.
 
+pub mod calibration;
+
+pub use calibration::StereoCalibration;
+
 use std::path::{Path, PathBuf};
 
 use nalgebra::Isometry3;
@@ -267,6 +271,19 @@ impl Dataset {
 
     pub fn len(&self) -> usize {
         self.frames.len()
+    }
+
+    /// The rectified stereo calibration of a KITTI-layout folder (`calib.txt`, as KITTI and
+    /// `doorslam sim world` write it). EuRoC folders are not rectified: their `sensor.yaml`
+    /// needs rectification maps, which the front-end computes.
+    pub fn calibration(&self) -> Result<StereoCalibration, DatasetError> {
+        match self.layout {
+            Layout::Kitti => StereoCalibration::from_kitti(&self.root.join("calib.txt")),
+            Layout::Euroc => Err(DatasetError::Layout {
+                path: self.root.clone(),
+                msg: "EuRoC images are not rectified: the calibration (sensor.yaml) is read with rectification by the front-end".into(),
+            }),
+        }
     }
     pub fn is_empty(&self) -> bool {
         self.frames.is_empty()
