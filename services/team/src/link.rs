@@ -1,5 +1,6 @@
 //! Zenoh peer sessions and key expressions.
 
+use doorslam_ipc::wire::RobotId;
 use zenoh::{Session, Wait};
 
 /// Failures of the inter-robot link.
@@ -13,8 +14,10 @@ pub enum TeamError {
         connect: Vec<String>,
         reason: String,
     },
-    #[error("invalid robot id {0:?}: use [a-z0-9_-]+")]
+    #[error("invalid robot id {0:?}: use 1-32 characters of [a-z0-9_-]")]
     RobotId(String),
+    #[error("invalid message kind {0:?} in a key expression: use [a-z0-9_-]+")]
+    Kind(String),
 }
 
 /// How one robot joins the team network.
@@ -62,14 +65,16 @@ pub fn open_peer(link: &LinkConfig) -> Result<Session, TeamError> {
 /// The one place key expressions are built: `doorslam/<to>/<kind>/<from>`, so a robot
 /// subscribes to `doorslam/<me>/**` and sees who sent what.
 pub fn key_expr(to: &str, kind: &str, from: &str) -> Result<String, TeamError> {
-    for id in [to, kind, from] {
-        let ok = !id.is_empty()
-            && id
-                .bytes()
-                .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == b'_' || c == b'-');
-        if !ok {
-            return Err(TeamError::RobotId(id.to_string()));
-        }
+    // Robot ids follow the rule of the id in every wire header (one definition).
+    for id in [to, from] {
+        RobotId::new(id).map_err(|_| TeamError::RobotId(id.to_string()))?;
+    }
+    let kind_ok = !kind.is_empty()
+        && kind
+            .bytes()
+            .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == b'_' || c == b'-');
+    if !kind_ok {
+        return Err(TeamError::Kind(kind.to_string()));
     }
     Ok(format!("doorslam/{to}/{kind}/{from}"))
 }

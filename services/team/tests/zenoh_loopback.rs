@@ -70,4 +70,12 @@ fn bad_endpoints_and_ids_are_clear_errors() {
         .unwrap_err()
         .to_string()
         .contains("B/../x"));
+    // The wire header's id rule: at most 32 characters.
+    let long = "a".repeat(33);
+    assert!(key_expr("b", "hello", &long).is_err());
+    assert!(key_expr("b", "hello", &"a".repeat(32)).is_ok());
+    assert!(key_expr("b", "he/llo", "a")
+        .unwrap_err()
+        .to_string()
+        .contains("kind"));
 }
