@@ -167,6 +167,38 @@ fn log_recovery(path: &Path, recovery: &Recovery, report: &BackendReport) {
     );
 }
 
+fn feed_keyframe(
+    state: &mut BackendState,
+    journal: &mut Journal,
+    kf: &Keyframe,
+) -> Result<(), ServiceError> {
+    let outcome = state.on_keyframe(kf, journal)?;
+    log_outcome(Topic::Keyframes, kf.id, &outcome);
+    Ok(())
+}
+
+/// Feeds every queued keyframe, then every queued odometry edge, to the state machine;
+/// whether there was any.
+fn drain(
+    keyframes: &Receiver<Keyframe>,
+    odometry: &Receiver<OdometryEdge>,
+    state: &mut BackendState,
+    journal: &mut Journal,
+) -> Result<bool, ServiceError> {
+    let mut any = false;
+    while let Some(sample) = keyframes.try_recv()? {
+        any = true;
+        feed_keyframe(state, journal, sample.payload())?;
+    }
+    while let Some(sample) = odometry.try_recv()? {
+        any = true;
+        let e = sample.payload();
+        let outcome = state.on_odometry(e, journal)?;
+        log_outcome(Topic::Odometry, e.to, &outcome);
+    }
+    Ok(any)
+}
+
 /// Runs until SIGTERM/SIGINT. The journal is replayed first, so a restarted back-end
 /// resumes with the graph it had.
 pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
@@ -193,21 +225,13 @@ pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
     tracing::info!(robot = %config.robot, "backend: ready (subscribed to keyframes and odometry)");
 
     while lifecycle.keep_going(&node) {
-        let mut progressed = false;
-        let mut next = keyframes.recv_timeout(Duration::from_millis(100))?;
-        while let Some(sample) = next {
-            progressed = true;
-            let kf = sample.payload();
-            let outcome = state.on_keyframe(kf, &mut journal)?;
-            log_outcome(Topic::Keyframes, kf.id, &outcome);
-            next = keyframes.try_recv()?;
+        // Sleep until a keyframe arrives (or 100 ms pass), then take everything queued.
+        let woken = keyframes.recv_timeout(Duration::from_millis(100))?;
+        let mut progressed = woken.is_some();
+        if let Some(sample) = woken {
+            feed_keyframe(&mut state, &mut journal, sample.payload())?;
         }
-        while let Some(sample) = odometry.try_recv()? {
-            progressed = true;
-            let e = sample.payload();
-            let outcome = state.on_odometry(e, &mut journal)?;
-            log_outcome(Topic::Odometry, e.to, &outcome);
-        }
+        progressed |= drain(&keyframes, &odometry, &mut state, &mut journal)?;
         if progressed && state.optimization_due() {
             match state.optimize() {
                 Ok(s) => tracing::info!(
@@ -233,16 +257,7 @@ pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
     // Whatever reached the queues before the stop is journaled: producers stop first
     // (`doorslam up` and the systemd units stop in reverse start order), so this is all
     // they sent.
-    while let Some(sample) = keyframes.try_recv()? {
-        let kf = sample.payload();
-        let outcome = state.on_keyframe(kf, &mut journal)?;
-        log_outcome(Topic::Keyframes, kf.id, &outcome);
-    }
-    while let Some(sample) = odometry.try_recv()? {
-        let e = sample.payload();
-        let outcome = state.on_odometry(e, &mut journal)?;
-        log_outcome(Topic::Odometry, e.to, &outcome);
-    }
+    drain(&keyframes, &odometry, &mut state, &mut journal)?;
     tracing::info!(report = ?state.report(), pending_edges = state.pending(), "backend: stopped");
     Ok(state.report().clone())
 }
