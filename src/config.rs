@@ -118,11 +118,8 @@ impl RobotConfig {
         if doorslam_ipc::wire::RobotId::new(id).is_err() {
             bail!("robot.id = {id:?}: use 1-32 characters of [a-z0-9_-]");
         }
-        if self.robot.index >= 26 {
-            bail!(
-                "robot.index = {}: must be below 26 (keys use 'a' + index)",
-                self.robot.index
-            );
+        if let Err(e) = doorslam_geometry::key::robot_index(self.robot.index) {
+            bail!("robot.index = {}: {e}", self.robot.index);
         }
         self.camera.validate()?;
         self.backend.validate()?;

@@ -40,7 +40,7 @@ pub use resolution::camera_for_resolution;
 pub use route::CORNER_RADIUS_M;
 
 /// Most drones a team can have: robots are named `a` to `z`.
-pub const MAX_ROBOTS: usize = 26;
+pub const MAX_ROBOTS: usize = doorslam_geometry::key::MAX_ROBOTS as usize;
 
 /// Failures of planning or writing a team flight; each names the field or the file.
 #[derive(Debug, thiserror::Error)]

@@ -87,7 +87,7 @@ pub enum SimError {
 }
 
 /// Largest robot count: keys use one lowercase letter per robot.
-pub const MAX_ROBOTS: usize = 26;
+pub const MAX_ROBOTS: usize = doorslam_geometry::key::MAX_ROBOTS as usize;
 
 fn invalid(field: &'static str, value: impl ToString, reason: &'static str) -> SimError {
     SimError::InvalidConfig {

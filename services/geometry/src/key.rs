@@ -17,14 +17,21 @@ pub enum KeyError {
     #[error("pose index {index} does not fit in a multi-robot key (at most 2^56 - 1)")]
     IndexTooLarge { index: u64 },
     #[error("robot {robot} out of range (a key holds robots 0..{MAX_ROBOTS}, 'a'..'z')")]
-    RobotOutOfRange { robot: u8 },
+    RobotOutOfRange { robot: u32 },
+}
+
+/// The key robot of a robot's index in the team (config, samples, messages carry it as
+/// `u32`): below [`MAX_ROBOTS`].
+pub fn robot_index(index: u32) -> Result<u8, KeyError> {
+    u8::try_from(index)
+        .ok()
+        .filter(|r| *r < MAX_ROBOTS)
+        .ok_or(KeyError::RobotOutOfRange { robot: index })
 }
 
 /// The key of pose `index` of robot `robot` (0 = 'a', 1 = 'b', ...).
 pub fn symbol(robot: u8, index: u64) -> Result<u64, KeyError> {
-    if robot >= MAX_ROBOTS {
-        return Err(KeyError::RobotOutOfRange { robot });
-    }
+    let robot = robot_index(robot.into())?;
     if index > MAX_INDEX {
         return Err(KeyError::IndexTooLarge { index });
     }
@@ -72,6 +79,11 @@ mod tests {
             Err(KeyError::IndexTooLarge { index: 1 << 56 })
         );
         assert_eq!(symbol(26, 0), Err(KeyError::RobotOutOfRange { robot: 26 }));
+        assert_eq!(robot_index(25), Ok(25));
+        assert_eq!(
+            robot_index(256 + 1),
+            Err(KeyError::RobotOutOfRange { robot: 257 })
+        );
         assert_eq!((robot(7), index(7)), (None, 7));
     }
 }

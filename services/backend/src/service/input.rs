@@ -6,7 +6,7 @@
 //! positive-definite information, ids that fit in a multi-robot key.
 
 use doorslam_geometry::information::matrix_from_upper;
-use doorslam_geometry::key::{self, MAX_INDEX, MAX_ROBOTS};
+use doorslam_geometry::key::{self, MAX_INDEX};
 use doorslam_geometry::{check_information, pose_from_array, InformationCheck, TangentMatrix, SE3};
 use doorslam_ipc::{
     Keyframe, KeyframeSource, LoopClosure, OdometryEdge, Topic, MAX_KEYFRAME_FEATURES,
@@ -206,12 +206,7 @@ pub fn check_closure(lc: &LoopClosure) -> Result<ClosureInput, InputError> {
         topic: Topic::Closures,
         robot: lc.robot_a,
     };
-    let robot = |field, r: u32| {
-        u8::try_from(r)
-            .ok()
-            .filter(|r| *r < MAX_ROBOTS)
-            .ok_or_else(|| c.fail(field, format!("robot {r} outside 0..{MAX_ROBOTS}")))
-    };
+    let robot = |field, r: u32| key::robot_index(r).map_err(|e| c.fail(field, e.to_string()));
     let (ra, rb) = (robot("robot_a", lc.robot_a)?, robot("robot_b", lc.robot_b)?);
     let ka = key::symbol(ra, c.id("keyframe_a", lc.keyframe_a)?)
         .map_err(|e| c.fail("keyframe_a", e.to_string()))?;

@@ -97,9 +97,7 @@ pub struct BackendState {
 impl BackendState {
     /// An empty graph for robot `robot_index` (below 26: keys are `'a' + index`).
     pub fn new(robot_index: u32, optimize_every: usize) -> Option<Self> {
-        let robot = u8::try_from(robot_index)
-            .ok()
-            .filter(|r| *r < key::MAX_ROBOTS)?;
+        let robot = key::robot_index(robot_index).ok()?;
         Some(Self {
             robot,
             robot_index,
