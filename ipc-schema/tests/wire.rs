@@ -70,6 +70,11 @@ fn pose(t: [f32; 3]) -> Pose {
     Pose::from_array([t[0], t[1], t[2], 0.0, 0.0, h, h]).unwrap()
 }
 
+fn compact(t: [f64; 3]) -> Estimate {
+    let p = pose([t[0] as f32, t[1] as f32, t[2] as f32]);
+    Estimate::Pose(CompactPose::quantize(p.se3()).unwrap())
+}
+
 fn information() -> Information {
     // σ = 0.01 rad for rotations, 0.05 m for translations.
     Information::from_upper(&upper_from_diagonal([1e4, 1e4, 1e4, 400.0, 400.0, 400.0])).unwrap()
@@ -142,10 +147,18 @@ fn samples() -> Vec<Message> {
                 optimization: 2,
                 round: 9,
                 stage: Stage::Pose,
-                estimates: vec![PoseEstimate {
-                    key: key(0, 120),
-                    pose: pose([10.0, 20.0, -1.5]),
-                }],
+                flags: ESTIMATES_CONVERGED,
+                anchor: 0,
+                estimates: vec![
+                    PoseEstimate {
+                        key: key(0, 120),
+                        value: compact([10.0, 20.0, -1.5]),
+                    },
+                    PoseEstimate {
+                        key: key(0, 121),
+                        value: compact([10.5, 20.0, -1.5]),
+                    },
+                ],
             },
         ),
         Message::new(
@@ -189,10 +202,11 @@ const PINNED: [&str; 7] = [
         "04353f0000c842003c0000003c00000000003c000000000000663200000000000000006632000000",
         "00000000000000663225",
     ),
-    // pose estimates (44 bytes)
+    // pose estimates (50 bytes: two compact poses, the second key as a gap of 1)
     concat!(
-        "010605616c7068610305020901010078000020410000a0410000c0bf0000000000000000f304353f",
-        "f304353f",
+        "010605616c706861030502090101000002",
+        "78a09c01c0b802b7170300000000ff7f",
+        "0188a401c0b802b7170300000000ff7f",
     ),
     // ack (16 bytes)
     "010705627261766f0306030205010202",
@@ -292,10 +306,12 @@ fn sizes_against_the_targets() {
                 optimization: 12,
                 round: 40,
                 stage: Stage::Pose,
+                flags: 0,
+                anchor: 0,
                 estimates: (0..n)
                     .map(|i| PoseEstimate {
                         key: key(1, 4000 + i),
-                        pose: pose([120.0, -35.5, 12.0]),
+                        value: compact([120.0, -35.5, 12.0]),
                     })
                     .collect(),
             },
@@ -508,11 +524,12 @@ fn limits_are_checked_before_allocation() {
 
 #[test]
 fn invalid_values_are_named() {
-    // A zero quaternion in the pose estimate.
+    // A quaternion vector part longer than 1 (no real w) in the pose estimate.
     let m = &samples()[5];
     let mut b = m.encode().unwrap();
-    let q_at = b.len() - 16;
-    b[q_at..].fill(0);
+    let q_at = b.len() - 6;
+    b[q_at..].copy_from_slice(&[0xff, 0x7f, 0xff, 0x7f, 0xff, 0x7f]);
+    b[q_at - 1] = 3;
     let e = decode_bounded(&b).unwrap_err();
     assert!(
         matches!(
@@ -524,7 +541,7 @@ fn invalid_values_are_named() {
         ),
         "{e}"
     );
-    assert!(e.to_string().contains("quaternion norm"), "{e}");
+    assert!(e.to_string().contains("exceed 3/4"), "{e}");
     // A zero information factor in the closure.
     let mut b = samples()[4].encode().unwrap();
     let info_at = b.len() - 1 - INFORMATION_BYTES;
@@ -696,20 +713,39 @@ fn arb_body() -> impl Strategy<Value = Body> {
         (
             any::<u64>(),
             any::<u64>(),
-            any::<bool>(),
-            prop::collection::vec((arb_key(), arb_pose()), 0..10)
+            0u8..3,
+            (any::<bool>(), 0u8..26, 0u8..26),
+            prop::collection::btree_set(0u64..100_000, 0..10),
+            prop::collection::vec((arb_pose(), prop::array::uniform9(-2.0f64..2.0)), 10)
         )
-            .prop_map(|(optimization, round, pose, e)| {
-                Body::PoseEstimates(PoseEstimates {
-                    optimization,
-                    round,
-                    stage: if pose { Stage::Pose } else { Stage::Rotation },
-                    estimates: e
-                        .into_iter()
-                        .map(|(key, pose)| PoseEstimate { key, pose })
-                        .collect(),
-                })
-            }),
+            .prop_map(
+                |(optimization, round, stage, (converged, anchor, robot), indices, values)| {
+                    let stage = [Stage::Rotation, Stage::Pose, Stage::Refine][stage as usize];
+                    Body::PoseEstimates(PoseEstimates {
+                        optimization,
+                        round,
+                        stage,
+                        flags: if converged { ESTIMATES_CONVERGED } else { 0 },
+                        anchor,
+                        estimates: indices
+                            .into_iter()
+                            .zip(values)
+                            .map(|(i, (pose, m))| PoseEstimate {
+                                key: key(robot, i),
+                                value: match stage {
+                                    Stage::Rotation => Estimate::Rotation(
+                                        RelaxedRotation::quantize(&std::array::from_fn(|r| {
+                                            std::array::from_fn(|c| m[3 * r + c])
+                                        }))
+                                        .unwrap(),
+                                    ),
+                                    _ => Estimate::Pose(CompactPose::quantize(pose.se3()).unwrap()),
+                                },
+                            })
+                            .collect(),
+                    })
+                }
+            ),
         (
             any::<u64>(),
             0usize..7,
@@ -806,5 +842,25 @@ proptest! {
         b.extend_from_slice(&tail);
         check_decode(&b);
         check_decode(&tail);
+    }
+}
+
+proptest! {
+    /// The stated bounds of the back-end's compact estimates: ≤ 0.5 mm per axis,
+    /// ≤ 1e-4 rad of rotation, ≤ 3.1e-5 per relaxed-rotation entry.
+    #[test]
+    fn compact_estimates_stay_within_their_stated_error(p in arb_pose(), m in prop::array::uniform9(-1.9f64..1.9)) {
+        let c = CompactPose::quantize(p.se3()).unwrap();
+        let dt = (c.se3().translation.vector - p.se3().translation.vector).amax();
+        prop_assert!(dt <= 0.5e-3 + 1e-9, "translation error {dt}");
+        let da = c.se3().rotation.angle_to(&p.se3().rotation);
+        prop_assert!(da <= COMPACT_ROTATION_ERROR_RAD, "rotation error {da}");
+        let mat: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|k| m[3 * r + k]));
+        let q = RelaxedRotation::quantize(&mat).unwrap().matrix();
+        for r in 0..3 {
+            for k in 0..3 {
+                prop_assert!((q[r][k] - mat[r][k]).abs() <= RELAXED_ROTATION_STEP / 2.0 + 1e-12);
+            }
+        }
     }
 }

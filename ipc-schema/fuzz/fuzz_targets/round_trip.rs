@@ -109,23 +109,42 @@ fn body(u: &mut Unstructured<'_>) -> Result<Option<Body>> {
         }
         5 => {
             let (optimization, round) = (u.arbitrary()?, u.arbitrary()?);
-            let stage = if u.arbitrary()? {
-                Stage::Pose
-            } else {
-                Stage::Rotation
-            };
+            let stage = [Stage::Rotation, Stage::Pose, Stage::Refine][u.int_in_range(0..=2usize)?];
+            let flags = if u.arbitrary()? { ESTIMATES_CONVERGED } else { 0 };
+            let anchor = u.int_in_range(0..=25u8)?;
+            let robot = u.int_in_range(0..=25u8)?;
+            let mut index = u.int_in_range(0..=1u64 << 40)?;
             let mut estimates = Vec::new();
             for _ in 0..u.int_in_range(0..=50)? {
-                let key = key(u)?;
-                let Some(pose) = pose(u)? else {
-                    return Ok(None);
+                index += u.int_in_range(1..=1000u64)?;
+                let key = symbol(robot, index).expect("in range");
+                let value = if stage == Stage::Rotation {
+                    let m: [[f64; 3]; 3] = [
+                        [u.arbitrary()?, u.arbitrary()?, u.arbitrary()?],
+                        [u.arbitrary()?, u.arbitrary()?, u.arbitrary()?],
+                        [u.arbitrary()?, u.arbitrary()?, u.arbitrary()?],
+                    ];
+                    match RelaxedRotation::quantize(&m) {
+                        Ok(r) => Estimate::Rotation(r),
+                        Err(_) => return Ok(None),
+                    }
+                } else {
+                    let Some(pose) = pose(u)? else {
+                        return Ok(None);
+                    };
+                    match CompactPose::quantize(pose.se3()) {
+                        Ok(c) => Estimate::Pose(c),
+                        Err(_) => return Ok(None),
+                    }
                 };
-                estimates.push(PoseEstimate { key, pose });
+                estimates.push(PoseEstimate { key, value });
             }
             Body::PoseEstimates(PoseEstimates {
                 optimization,
                 round,
                 stage,
+                flags,
+                anchor,
                 estimates,
             })
         }

@@ -22,6 +22,11 @@ pub(crate) trait Sink {
     fn f32(&mut self, v: f32) {
         self.put(&v.to_le_bytes());
     }
+    /// Signed value as a zigzag varint (0, -1, 1, -2, … → 0, 1, 2, 3, …): small magnitudes
+    /// of either sign take few bytes.
+    fn zigzag(&mut self, v: i64) {
+        self.varint(((v << 1) ^ (v >> 63)) as u64);
+    }
     /// Unsigned LEB128: 7 bits per byte, least significant group first, high bit = more.
     fn varint(&mut self, mut v: u64) {
         let mut buf = [0u8; 10];
@@ -109,6 +114,12 @@ impl<'a> Reader<'a> {
 
     pub fn u16(&mut self, field: &'static str) -> Result<u16, WireError> {
         Ok(u16::from_le_bytes(self.array(field)?))
+    }
+
+    /// A zigzag varint (see [`Sink::zigzag`]).
+    pub fn zigzag(&mut self, field: &'static str) -> Result<i64, WireError> {
+        let v = self.varint(field)?;
+        Ok((v >> 1) as i64 ^ -((v & 1) as i64))
     }
 
     pub fn f32(&mut self, field: &'static str) -> Result<f32, WireError> {

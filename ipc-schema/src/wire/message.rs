@@ -2,8 +2,9 @@
 
 use super::codec::{Counter, Reader, Sink};
 use super::types::{
-    read_key, write_key, Descriptor, Information, Pose, RobotId, VerificationFeature,
-    DESCRIPTOR_DIM, FEATURE_BYTES, INFORMATION_BYTES, POSE_BYTES,
+    read_key, write_key, CompactPose, Descriptor, Information, Pose, RelaxedRotation, RobotId,
+    VerificationFeature, COMPACT_POSE_MIN_BYTES, DESCRIPTOR_DIM, FEATURE_BYTES, INFORMATION_BYTES,
+    POSE_BYTES, RELAXED_ROTATION_BYTES,
 };
 use super::WireError;
 use crate::shm::MAX_KEYFRAME_FEATURES;
@@ -172,35 +173,67 @@ pub struct LoopClosures {
     pub closures: Vec<LoopClosure>,
 }
 
-/// Stage of the two-stage distributed Gauss-Seidel.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// Stage of the distributed back-end: the two stages of distributed Gauss-Seidel, then
+/// the nonlinear refinement.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 #[repr(u8)]
 pub enum Stage {
-    /// Rotation estimation: only the rotation of each pose is meaningful.
+    /// Rotation estimation (chordal relaxation): estimates are [`RelaxedRotation`]s.
     Rotation = 0,
-    /// Full pose estimation.
+    /// Full poses given the rotation estimate: estimates are [`CompactPose`]s.
     Pose = 1,
+    /// Nonlinear refinement (block-coordinate descent on the full cost): [`CompactPose`]s.
+    Refine = 2,
+}
+
+impl Stage {
+    fn from_u8(v: u8) -> Option<Stage> {
+        [Stage::Rotation, Stage::Pose, Stage::Refine]
+            .into_iter()
+            .find(|s| *s as u8 == v)
+    }
+}
+
+/// The value of one separator estimate: what its stage estimates.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Estimate {
+    Rotation(RelaxedRotation),
+    Pose(CompactPose),
 }
 
 /// One separator pose estimate.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PoseEstimate {
+    /// Key of the pose (the sender's robot: a robot sends only its own separators).
     pub key: u64,
-    /// In the sender's world frame.
-    pub pose: Pose,
+    /// In the frame of the message's `anchor` robot; must match the message's stage.
+    pub value: Estimate,
 }
 
-/// Separator pose estimates for one round of the distributed back-end (step 4). Layout:
-/// optimization (varint), round (varint), stage (u8), count (varint), then per estimate
-/// its key and pose (28 bytes).
+/// Bit of [`PoseEstimates::flags`]: the sender's estimate stopped changing in this stage.
+pub const ESTIMATES_CONVERGED: u8 = 1;
+
+/// Separator estimates for one round of the distributed back-end (step 4).
+///
+/// Layout: optimization (varint), round (varint), stage (u8), flags (u8), anchor (u8),
+/// robot (u8), count (varint), then per estimate the gap from the previous index (the
+/// first: the index itself; varint, ≥ 1 after the first) and its value: 18 bytes for a
+/// relaxed rotation, 9–15 for a compact pose. Keys are the `robot`'s, strictly ascending,
+/// so a key costs 1–2 bytes instead of 2–4.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PoseEstimates {
-    /// Which distributed optimization: incremented by the initiating robot per run, so
-    /// estimates of an abandoned run are never mixed into a new one.
+    /// The sender's initialization generation: incremented each time it re-initializes
+    /// (a new anchor, a restart), so estimates of an abandoned frame are never mixed in.
     pub optimization: u64,
-    /// Gauss-Seidel iteration within the stage, from 0.
+    /// The sender's iteration within the stage, from 0.
     pub round: u64,
     pub stage: Stage,
+    /// [`ESTIMATES_CONVERGED`]; other bits must be 0.
+    pub flags: u8,
+    /// The robot (0 = 'a') whose first pose fixes the gauge of these estimates: the lowest
+    /// robot of the sender's connected team.
+    pub anchor: u8,
+    /// Ascending keys of one robot, values of the stage's kind.
     pub estimates: Vec<PoseEstimate>,
 }
 
@@ -348,17 +381,7 @@ impl Message {
                     s.varint(u64::from(c.inliers));
                 }
             }
-            Body::PoseEstimates(p) => {
-                s.varint(p.optimization);
-                s.varint(p.round);
-                s.u8(p.stage as u8);
-                check_count(s, "estimate count", p.estimates.len(), MAX_POSE_ESTIMATES)?;
-                s.varint(p.estimates.len() as u64);
-                for e in &p.estimates {
-                    write_key(s, "estimate key", e.key)?;
-                    e.pose.write(s);
-                }
-            }
+            Body::PoseEstimates(p) => write_estimates(s, p)?,
             Body::Ack(a) => write_ack(s, a)?,
         }
         Ok(())
@@ -459,40 +482,149 @@ impl Message {
                 }
                 Body::LoopClosures(LoopClosures { closures })
             }
-            Kind::PoseEstimates => {
-                let optimization = r.varint("optimization")?;
-                let round = r.varint("round")?;
-                let offset = r.offset();
-                let stage = match r.u8("stage")? {
-                    0 => Stage::Rotation,
-                    1 => Stage::Pose,
-                    s => {
-                        return Err(WireError::invalid(
-                            "stage",
-                            offset,
-                            format!("{s} is neither 0 (rotation) nor 1 (pose)"),
-                        ))
-                    }
-                };
-                let n = r.count("estimate count", MAX_POSE_ESTIMATES, 2 + POSE_BYTES)?;
-                let mut estimates = Vec::with_capacity(n);
-                for _ in 0..n {
-                    let key = read_key(&mut r, "estimate key")?;
-                    let pose = Pose::read(&mut r, "estimate pose")?;
-                    estimates.push(PoseEstimate { key, pose });
-                }
-                Body::PoseEstimates(PoseEstimates {
-                    optimization,
-                    round,
-                    stage,
-                    estimates,
-                })
-            }
+            Kind::PoseEstimates => Body::PoseEstimates(read_estimates(&mut r)?),
             Kind::Ack => Body::Ack(read_ack(&mut r)?),
         };
         r.finish()?;
         Ok(Message { header, body })
     }
+}
+
+fn write_estimates(s: &mut impl Sink, p: &PoseEstimates) -> Result<(), WireError> {
+    s.varint(p.optimization);
+    s.varint(p.round);
+    s.u8(p.stage as u8);
+    if p.flags & !ESTIMATES_CONVERGED != 0 {
+        return Err(WireError::invalid(
+            "estimate flags",
+            s.offset(),
+            "unknown bits set",
+        ));
+    }
+    s.u8(p.flags);
+    if p.anchor >= doorslam_geometry::key::MAX_ROBOTS {
+        return Err(WireError::invalid(
+            "estimate anchor",
+            s.offset(),
+            "not below 26",
+        ));
+    }
+    s.u8(p.anchor);
+    let robot = match p.estimates.first() {
+        Some(e) => doorslam_geometry::key::robot(e.key).ok_or_else(|| {
+            WireError::invalid("estimate key", s.offset(), "not a multi-robot key")
+        })?,
+        None => 0,
+    };
+    s.u8(robot);
+    check_count(s, "estimate count", p.estimates.len(), MAX_POSE_ESTIMATES)?;
+    s.varint(p.estimates.len() as u64);
+    let mut previous: Option<u64> = None;
+    for e in &p.estimates {
+        if doorslam_geometry::key::robot(e.key) != Some(robot) {
+            return Err(WireError::invalid(
+                "estimate key",
+                s.offset(),
+                "keys of more than one robot in one message",
+            ));
+        }
+        let index = doorslam_geometry::key::index(e.key);
+        let gap = match previous {
+            None => Some(index),
+            Some(prev) => index.checked_sub(prev).filter(|&g| g > 0),
+        };
+        let gap = gap.ok_or_else(|| {
+            WireError::invalid("estimate key", s.offset(), "keys not strictly ascending")
+        })?;
+        previous = Some(index);
+        s.varint(gap);
+        match (&e.value, p.stage) {
+            (Estimate::Rotation(r), Stage::Rotation) => r.write(s),
+            (Estimate::Pose(q), Stage::Pose | Stage::Refine) => q.write(s),
+            _ => {
+                return Err(WireError::invalid(
+                    "estimate value",
+                    s.offset(),
+                    "value kind does not match the stage",
+                ))
+            }
+        }
+    }
+    Ok(())
+}
+
+fn read_estimates(r: &mut Reader<'_>) -> Result<PoseEstimates, WireError> {
+    let optimization = r.varint("optimization")?;
+    let round = r.varint("round")?;
+    let offset = r.offset();
+    let stage = r.u8("stage")?;
+    let stage = Stage::from_u8(stage).ok_or_else(|| {
+        WireError::invalid(
+            "stage",
+            offset,
+            format!("{stage} is not 0 (rotation), 1 (pose) or 2 (refine)"),
+        )
+    })?;
+    let offset = r.offset();
+    let flags = r.u8("estimate flags")?;
+    if flags & !ESTIMATES_CONVERGED != 0 {
+        return Err(WireError::invalid(
+            "estimate flags",
+            offset,
+            "unknown bits set",
+        ));
+    }
+    let offset = r.offset();
+    let anchor = r.u8("estimate anchor")?;
+    if anchor >= doorslam_geometry::key::MAX_ROBOTS {
+        return Err(WireError::invalid(
+            "estimate anchor",
+            offset,
+            "not below 26",
+        ));
+    }
+    let offset = r.offset();
+    let robot = r.u8("estimate robot")?;
+    if robot >= doorslam_geometry::key::MAX_ROBOTS {
+        return Err(WireError::invalid("estimate robot", offset, "not below 26"));
+    }
+    let min = 1 + match stage {
+        Stage::Rotation => RELAXED_ROTATION_BYTES,
+        Stage::Pose | Stage::Refine => COMPACT_POSE_MIN_BYTES,
+    };
+    let n = r.count("estimate count", MAX_POSE_ESTIMATES, min)?;
+    let mut estimates = Vec::with_capacity(n);
+    let mut index: Option<u64> = None;
+    for _ in 0..n {
+        let offset = r.offset();
+        let gap = r.varint("estimate key")?;
+        let next = match index {
+            None => Some(gap),
+            Some(prev) => prev.checked_add(gap).filter(|_| gap > 0),
+        };
+        let key = next
+            .ok_or_else(|| {
+                WireError::invalid("estimate key", offset, "keys not strictly ascending")
+            })
+            .and_then(|i| {
+                doorslam_geometry::key::symbol(robot, i)
+                    .map_err(|e| WireError::invalid("estimate key", offset, e))
+            })?;
+        index = next;
+        let value = match stage {
+            Stage::Rotation => Estimate::Rotation(RelaxedRotation::read(r, "estimate rotation")?),
+            Stage::Pose | Stage::Refine => Estimate::Pose(CompactPose::read(r, "estimate pose")?),
+        };
+        estimates.push(PoseEstimate { key, value });
+    }
+    Ok(PoseEstimates {
+        optimization,
+        round,
+        stage,
+        flags,
+        anchor,
+        estimates,
+    })
 }
 
 fn write_descriptors(s: &mut impl Sink, d: &Descriptors) -> Result<(), WireError> {

@@ -34,12 +34,15 @@ pub use codec::{f16_from_f32, f32_from_f16};
 pub use error::WireError;
 pub use message::Descriptors;
 pub use message::{
-    Ack, Body, Header, Hello, Kind, LoopClosure, LoopClosures, Match, Matches, Message,
-    PoseEstimate, PoseEstimates, Stage, VerificationFeatures, MAX_ACK_RANGES, MAX_DESCRIPTORS,
-    MAX_FEATURES, MAX_LOOP_CLOSURES, MAX_MATCHES, MAX_MESSAGE_BYTES, MAX_POSE_ESTIMATES,
-    WIRE_VERSION,
+    Ack, Body, Estimate, Header, Hello, Kind, LoopClosure, LoopClosures, Match, Matches, Message,
+    PoseEstimate, PoseEstimates, Stage, VerificationFeatures, ESTIMATES_CONVERGED, MAX_ACK_RANGES,
+    MAX_DESCRIPTORS, MAX_FEATURES, MAX_LOOP_CLOSURES, MAX_MATCHES, MAX_MESSAGE_BYTES,
+    MAX_POSE_ESTIMATES, WIRE_VERSION,
 };
 pub use types::{
-    Descriptor, Information, Pose, QuantizeError, RobotId, VerificationFeature, DESCRIPTOR_DIM,
-    FEATURE_BYTES, INFORMATION_BYTES, MAX_ROBOT_ID_LEN, PIXEL_STEPS, POSE_BYTES,
+    CompactPose, Descriptor, Information, Pose, QuantizeError, RelaxedRotation, RobotId,
+    VerificationFeature, COMPACT_POSE_MIN_BYTES, COMPACT_QUATERNION_STEPS,
+    COMPACT_ROTATION_ERROR_RAD, COMPACT_TRANSLATION_STEP_M, DESCRIPTOR_DIM, FEATURE_BYTES,
+    INFORMATION_BYTES, MAX_COMPACT_TRANSLATION_M, MAX_ROBOT_ID_LEN, PIXEL_STEPS, POSE_BYTES,
+    RELAXED_ROTATION_BYTES, RELAXED_ROTATION_STEP,
 };

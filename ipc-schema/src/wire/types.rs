@@ -449,3 +449,223 @@ impl VerificationFeature {
         })
     }
 }
+
+/// Largest translation component a [`CompactPose`] carries: 1,000 km, in metres.
+pub const MAX_COMPACT_TRANSLATION_M: f64 = 1.0e6;
+/// Translation step of a [`CompactPose`]: 1 mm (rounding error ≤ 0.5 mm per axis).
+pub const COMPACT_TRANSLATION_STEP_M: f64 = 1.0e-3;
+/// Quaternion step of a [`CompactPose`]: the three smallest components in 1/46341
+/// (i16 over ±1/√2, the most the three smaller components of a unit quaternion reach).
+pub const COMPACT_QUATERNION_STEPS: f64 = 32767.0 * std::f64::consts::SQRT_2;
+/// Step of a [`RelaxedRotation`] entry: 2⁻¹⁴ (rounding error ≤ 3.1e-5), range ±2.
+pub const RELAXED_ROTATION_STEP: f64 = 1.0 / 16384.0;
+/// Largest rotation error of a [`CompactPose`] (rad), see its documentation.
+pub const COMPACT_ROTATION_ERROR_RAD: f64 = 1.0e-4;
+
+/// A separator pose estimate as the distributed back-end sends it: translation in
+/// millimetres (three zigzag varints: 2–3 bytes each within 65 m / 8 km of the origin) and
+/// the rotation as a unit quaternion in "smallest three" form — which component is the
+/// largest in magnitude (one byte, 0–3 for x, y, z, w; its sign made positive, as q and -q
+/// are one rotation) and the other three in i16 steps of 1/46341 (the largest is rebuilt as
+/// √(1 − Σ others²) ≥ ½, so rounding is never amplified, unlike dropping w when w ≈ 0):
+/// 10–16 bytes instead of [`Pose`]'s 28.
+///
+/// The error is bounded and stated: ≤ 0.5 mm per translation axis and
+/// ≤ [`COMPACT_ROTATION_ERROR_RAD`] (0.006°) of rotation — orders of magnitude below
+/// odometry and loop-closure noise and below the back-end's stopping thresholds, so the
+/// optimum each robot reaches from quantized neighbour estimates is the one it reaches
+/// from exact ones (tested by the distributed back-end).
+#[derive(Debug, Clone, PartialEq)]
+pub struct CompactPose {
+    translation_mm: [i64; 3],
+    largest: u8,
+    rest: [i16; 3],
+    se3: SE3,
+}
+
+impl CompactPose {
+    /// Rounds a pose to the wire's steps; refused if not finite or a translation
+    /// component is beyond ±[`MAX_COMPACT_TRANSLATION_M`].
+    pub fn quantize(p: &SE3) -> Result<Self, QuantizeError> {
+        let t = p.translation.vector;
+        let mut translation_mm = [0i64; 3];
+        for (k, v) in translation_mm.iter_mut().enumerate() {
+            let x = t[k];
+            if !x.is_finite() {
+                return Err(QuantizeError::NonFinite {
+                    field: "estimate translation",
+                    value: x,
+                });
+            }
+            if x.abs() > MAX_COMPACT_TRANSLATION_M {
+                return Err(QuantizeError::OutOfRange {
+                    field: "estimate translation",
+                    value: x,
+                    min: -MAX_COMPACT_TRANSLATION_M,
+                    max: MAX_COMPACT_TRANSLATION_M,
+                });
+            }
+            *v = (x / COMPACT_TRANSLATION_STEP_M).round() as i64;
+        }
+        let c = p.rotation.coords;
+        let q = [c.x, c.y, c.z, c.w];
+        let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if !(n.is_finite() && n > 0.0) {
+            return Err(QuantizeError::NonFinite {
+                field: "estimate rotation",
+                value: n,
+            });
+        }
+        let largest = (0..4)
+            .max_by(|&a, &b| q[a].abs().total_cmp(&q[b].abs()))
+            .unwrap_or(3);
+        let sign = q[largest].signum() / n;
+        let mut rest = [0i16; 3];
+        for (slot, k) in rest.iter_mut().zip((0..4).filter(|&k| k != largest)) {
+            *slot = (q[k] * sign * COMPACT_QUATERNION_STEPS)
+                .round()
+                .clamp(-32767.0, 32767.0) as i16;
+        }
+        Self::from_parts(translation_mm, largest as u8, rest).map_err(|_| {
+            QuantizeError::OutOfRange {
+                field: "estimate rotation",
+                value: n,
+                min: 1.0,
+                max: 1.0,
+            }
+        })
+    }
+
+    /// From the wire integers; refused if the largest component's index is above 3.
+    pub fn from_parts(
+        translation_mm: [i64; 3],
+        largest: u8,
+        rest: [i16; 3],
+    ) -> Result<Self, &'static str> {
+        let limit = (MAX_COMPACT_TRANSLATION_M / COMPACT_TRANSLATION_STEP_M) as i64;
+        if translation_mm.iter().any(|t| t.abs() > limit) {
+            return Err("translation beyond 1,000 km");
+        }
+        if largest > 3 {
+            return Err("largest quaternion component index above 3");
+        }
+        let others = rest.map(|c| f64::from(c) / COMPACT_QUATERNION_STEPS);
+        let norm2: f64 = others.iter().map(|v| v * v).sum();
+        // Three components of ≤ 1/√2 each can exceed 1 together only in corrupt input;
+        // such a value is not the smallest three of any unit quaternion.
+        if norm2 > 0.75 + 1e-4 {
+            return Err("quaternion components inconsistent (the three smallest exceed 3/4)");
+        }
+        let mut q = [0.0; 4];
+        let mut it = others.iter();
+        for (k, v) in q.iter_mut().enumerate() {
+            *v = if k == largest as usize {
+                (1.0 - norm2).sqrt()
+            } else {
+                it.next().copied().unwrap_or(0.0)
+            };
+        }
+        let t = translation_mm.map(|x| x as f64 * COMPACT_TRANSLATION_STEP_M);
+        let se3 = pose_from_array(&[t[0], t[1], t[2], q[0], q[1], q[2], q[3]])
+            .map_err(|_| "not a pose")?;
+        Ok(Self {
+            translation_mm,
+            largest,
+            rest,
+            se3,
+        })
+    }
+
+    /// The integers that travel: translation in mm, index of the largest quaternion
+    /// component, the other three in 1/46341.
+    pub fn parts(&self) -> ([i64; 3], u8, [i16; 3]) {
+        (self.translation_mm, self.largest, self.rest)
+    }
+
+    /// The pose as the receiver uses it.
+    pub fn se3(&self) -> &SE3 {
+        &self.se3
+    }
+
+    pub(crate) fn write(&self, s: &mut impl Sink) {
+        for t in self.translation_mm {
+            s.zigzag(t);
+        }
+        s.u8(self.largest);
+        for c in self.rest {
+            s.u16(c as u16);
+        }
+    }
+
+    pub(crate) fn read(r: &mut Reader<'_>, field: &'static str) -> Result<Self, WireError> {
+        let offset = r.offset();
+        let mut t = [0i64; 3];
+        for v in &mut t {
+            *v = r.zigzag(field)?;
+        }
+        let largest = r.u8(field)?;
+        let mut q = [0i16; 3];
+        for c in &mut q {
+            *c = r.u16(field)? as i16;
+        }
+        Self::from_parts(t, largest, q).map_err(|e| WireError::invalid(field, offset, e))
+    }
+}
+
+/// Fewest bytes of a [`CompactPose`] on the wire (three one-byte varints and 7 bytes).
+pub const COMPACT_POSE_MIN_BYTES: usize = 3 + 7;
+
+/// A rotation of stage 1 of the distributed back-end (chordal relaxation): a 3×3 matrix
+/// that is only approximately orthogonal while the iterations run, so it travels whole,
+/// as nine i16 in steps of [`RELAXED_ROTATION_STEP`] (18 bytes; error ≤ 3.1e-5 per entry,
+/// entries clamped to ±2 — a relaxed rotation's entries stay within ±1 plus the relaxation
+/// error).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RelaxedRotation([i16; 9]);
+
+impl RelaxedRotation {
+    /// Rounds a row-major 3×3 matrix; refused if an entry is not finite.
+    pub fn quantize(m: &[[f64; 3]; 3]) -> Result<Self, QuantizeError> {
+        let mut out = [0i16; 9];
+        for (k, v) in out.iter_mut().enumerate() {
+            let x = m[k / 3][k % 3];
+            if !x.is_finite() {
+                return Err(QuantizeError::NonFinite {
+                    field: "relaxed rotation",
+                    value: x,
+                });
+            }
+            *v = (x / RELAXED_ROTATION_STEP).round().clamp(-32767.0, 32767.0) as i16;
+        }
+        Ok(Self(out))
+    }
+
+    /// The row-major matrix.
+    pub fn matrix(&self) -> [[f64; 3]; 3] {
+        std::array::from_fn(|r| {
+            std::array::from_fn(|c| f64::from(self.0[3 * r + c]) * RELAXED_ROTATION_STEP)
+        })
+    }
+
+    /// The integers that travel.
+    pub fn parts(&self) -> [i16; 9] {
+        self.0
+    }
+
+    pub(crate) fn write(&self, s: &mut impl Sink) {
+        for v in self.0 {
+            s.u16(v as u16);
+        }
+    }
+
+    pub(crate) fn read(r: &mut Reader<'_>, field: &'static str) -> Result<Self, WireError> {
+        let mut out = [0i16; 9];
+        for v in &mut out {
+            *v = r.u16(field)? as i16;
+        }
+        Ok(Self(out))
+    }
+}
+
+/// Bytes of a [`RelaxedRotation`] on the wire.
+pub const RELAXED_ROTATION_BYTES: usize = 18;
