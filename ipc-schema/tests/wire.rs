@@ -170,6 +170,14 @@ fn samples() -> Vec<Message> {
                 received: vec![std::ops::Range { start: 7, end: 9 }],
             },
         ),
+        Message::new(
+            header("alpha", 7),
+            Body::SeparatorGraph(SeparatorGraph {
+                origin: 1,
+                version: 4,
+                edges: vec![closure(0)],
+            }),
+        ),
     ]
 }
 
@@ -179,7 +187,7 @@ fn hex(b: &[u8]) -> String {
 
 // The hello, in full: version 1, kind 1, sender "alpha" (5 bytes), epoch 3, sequence 0,
 // robot 0. The descriptor and feature payloads are long, so those pins cover everything.
-const PINNED: [&str; 7] = [
+const PINNED: [&str; 8] = [
     // hello (11 bytes)
     "010105616c706861030000",
     // descriptors (147 bytes)
@@ -210,12 +218,28 @@ const PINNED: [&str; 7] = [
     ),
     // ack (16 bytes)
     "010705627261766f0306030205010202",
+    // separator graph (92 bytes: origin 1, version 4, then the closure as above)
+    concat!(
+        "010805616c70686103070104",
+        "010078012d0000c03f000080be0000003e0000000000000000f304353ff3",
+        "04353f0000c842003c0000003c00000000003c000000000000663200000000000000006632000000",
+        "00000000000000663225",
+    ),
 ];
 
 #[test]
 fn pinned_bytes_of_each_kind() {
     let samples = samples();
     assert_eq!(samples.len(), Kind::ALL.len());
+    assert_eq!(
+        PINNED.len(),
+        samples.len(),
+        "pin every kind; the last sample encodes as {}",
+        samples
+            .last()
+            .map(|m| hex(&m.encode().unwrap()))
+            .unwrap_or_default()
+    );
     for (m, pin) in samples.iter().zip(PINNED) {
         let b = m.encode().unwrap();
         assert_eq!(hex(&b), pin, "{:?}", m.kind());
@@ -710,6 +734,34 @@ fn arb_body() -> impl Strategy<Value = Body> {
                     .collect(),
             })
         }),
+        prop::collection::vec(
+            (
+                arb_key(),
+                arb_key(),
+                arb_pose(),
+                arb_information(),
+                any::<u32>()
+            ),
+            0..5
+        )
+        .prop_map(|c| {
+            Body::SeparatorGraph(SeparatorGraph {
+                origin: 2,
+                version: 9,
+                edges: c
+                    .into_iter()
+                    .map(
+                        |(key_a, key_b, relative, information, inliers)| LoopClosure {
+                            key_a,
+                            key_b,
+                            relative,
+                            information,
+                            inliers,
+                        },
+                    )
+                    .collect(),
+            })
+        }),
         (
             any::<u64>(),
             any::<u64>(),
@@ -748,7 +800,7 @@ fn arb_body() -> impl Strategy<Value = Body> {
             ),
         (
             any::<u64>(),
-            0usize..7,
+            0usize..8,
             0u64..1_000_000,
             prop::collection::vec((1u64..100, 1u64..100), 0..MAX_ACK_RANGES)
         )

@@ -2,6 +2,7 @@
 
 mod bench;
 mod demo;
+mod dpgo;
 mod eval;
 mod pcm;
 mod pending;
@@ -33,8 +34,9 @@ pub enum Command {
     Pgo(pgo::PgoArgs),
     /// Reject outlier loop closures with PCM (pairwise consistency + maximum clique).
     Pcm(pcm::PcmArgs),
-    /// Distributed pose-graph optimization (two-stage distributed Gauss-Seidel).
-    Dpgo(pending::PendingArgs),
+    /// Distributed pose-graph optimization (two-stage distributed Gauss-Seidel, then
+    /// refinement), played in-process and compared with the centralized optimum.
+    Dpgo(dpgo::DpgoArgs),
     /// Evaluate trajectories: ATE / RPE against ground truth.
     Eval(eval::EvalArgs),
     /// Simulate worlds, flights and multi-robot pose graphs.
@@ -67,9 +69,7 @@ pub fn main() -> ExitCode {
         Command::Up(args) => up::run(args),
         Command::Pgo(args) => pgo::run(args),
         Command::Pcm(args) => pcm::run(args),
-        Command::Dpgo(args) => {
-            pending::fail("dpgo", "the distributed back-end issue (next wave)", &args)
-        }
+        Command::Dpgo(args) => dpgo::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Sim(args) => sim::run(args),
         Command::Replay(args) => replay::run(args),

@@ -54,19 +54,29 @@ pub struct PcmArgs {
 
 /// Merges per-robot files: poses from the file that has their VERTEX line, edges once.
 fn merge(args: &PcmArgs) -> Result<PoseGraph<Isometry3<f64>>> {
-    let unknown = if args.skip_unknown {
+    merge_files(&args.files, args.skip_unknown, args.information)
+}
+
+/// Merges per-robot files (or reads one merged file): poses from the file that has their
+/// VERTEX line, edges once. Shared with `doorslam dpgo`.
+pub(super) fn merge_files(
+    files: &[PathBuf],
+    skip_unknown: bool,
+    information: InformationArg,
+) -> Result<PoseGraph<Isometry3<f64>>> {
+    let unknown = if skip_unknown {
         UnknownTags::Skip
     } else {
         UnknownTags::Error
     };
     let mut merged = PoseGraph::new();
     let mut seen_edges = BTreeSet::new();
-    for path in &args.files {
+    for path in files {
         let file = read_g2o_with(
             path,
             ReadOptions {
                 unknown,
-                information: args.information.into(),
+                information: information.into(),
             },
         )?;
         for w in &file.warnings {
@@ -81,7 +91,7 @@ fn merge(args: &PcmArgs) -> Result<PoseGraph<Isometry3<f64>>> {
             }
         }
         // The reader checked every matrix under the chosen policy; as-is ones stay as-is.
-        let check = match args.information {
+        let check = match information {
             InformationArg::AsIs => InformationCheck::AsIs,
             _ => InformationCheck::PositiveDefinite,
         };

@@ -37,7 +37,7 @@ fn information(u: &mut Unstructured<'_>) -> Result<Option<Information>> {
 }
 
 fn body(u: &mut Unstructured<'_>) -> Result<Option<Body>> {
-    Ok(Some(match u.int_in_range(0..=6u8)? {
+    Ok(Some(match u.int_in_range(0..=7u8)? {
         0 => Body::Hello(Hello {
             robot: u.int_in_range(0..=25)?,
         }),
@@ -105,7 +105,15 @@ fn body(u: &mut Unstructured<'_>) -> Result<Option<Body>> {
                     inliers: u.arbitrary()?,
                 });
             }
-            Body::LoopClosures(LoopClosures { closures })
+            if u.arbitrary()? {
+                Body::LoopClosures(LoopClosures { closures })
+            } else {
+                Body::SeparatorGraph(SeparatorGraph {
+                    origin: u.int_in_range(0..=25u8)?,
+                    version: u.arbitrary()?,
+                    edges: closures,
+                })
+            }
         }
         5 => {
             let (optimization, round) = (u.arbitrary()?, u.arbitrary()?);
@@ -150,7 +158,7 @@ fn body(u: &mut Unstructured<'_>) -> Result<Option<Body>> {
         }
         _ => {
             let epoch = u.arbitrary()?;
-            let kind = Kind::ALL[u.int_in_range(0..=6usize)?];
+            let kind = Kind::ALL[u.int_in_range(0..=7usize)?];
             let next = u.int_in_range(0..=1u64 << 50)?;
             let mut end = next;
             let mut received = Vec::new();

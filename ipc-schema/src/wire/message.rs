@@ -39,10 +39,11 @@ pub enum Kind {
     LoopClosures = 5,
     PoseEstimates = 6,
     Ack = 7,
+    SeparatorGraph = 8,
 }
 
 impl Kind {
-    pub const ALL: [Kind; 7] = [
+    pub const ALL: [Kind; 8] = [
         Kind::Hello,
         Kind::Descriptors,
         Kind::Matches,
@@ -50,6 +51,7 @@ impl Kind {
         Kind::LoopClosures,
         Kind::PoseEstimates,
         Kind::Ack,
+        Kind::SeparatorGraph,
     ];
 
     /// Name for logs and the bandwidth ledger.
@@ -62,6 +64,7 @@ impl Kind {
             Kind::LoopClosures => "loop_closures",
             Kind::PoseEstimates => "pose_estimates",
             Kind::Ack => "ack",
+            Kind::SeparatorGraph => "separator_graph",
         }
     }
 
@@ -253,6 +256,22 @@ pub struct Ack {
     pub received: Vec<core::ops::Range<u64>>,
 }
 
+/// One robot's trajectory condensed onto its separator poses, for the distributed
+/// back-end's condensed refinement: relative-pose constraints between separators (the
+/// robot's odometry compounded between consecutive separators, with the compounded
+/// information) and the inter-robot closures it reports. Forwarded robot to robot, so it
+/// names its `origin` and a `version` (higher replaces lower).
+///
+/// Layout: origin (u8), version (varint), count (varint), then per edge as in
+/// [`LoopClosures`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct SeparatorGraph {
+    /// The robot (0 = 'a') whose trajectory this is.
+    pub origin: u8,
+    pub version: u64,
+    pub edges: Vec<LoopClosure>,
+}
+
 /// A message body: one of the kinds.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Body {
@@ -263,6 +282,7 @@ pub enum Body {
     LoopClosures(LoopClosures),
     PoseEstimates(PoseEstimates),
     Ack(Ack),
+    SeparatorGraph(SeparatorGraph),
 }
 
 impl Body {
@@ -275,6 +295,7 @@ impl Body {
             Body::LoopClosures(_) => Kind::LoopClosures,
             Body::PoseEstimates(_) => Kind::PoseEstimates,
             Body::Ack(_) => Kind::Ack,
+            Body::SeparatorGraph(_) => Kind::SeparatorGraph,
         }
     }
 }
@@ -370,16 +391,18 @@ impl Message {
                     f.write(s);
                 }
             }
-            Body::LoopClosures(l) => {
-                check_count(s, "closure count", l.closures.len(), MAX_LOOP_CLOSURES)?;
-                s.varint(l.closures.len() as u64);
-                for c in &l.closures {
-                    write_key(s, "closure key a", c.key_a)?;
-                    write_key(s, "closure key b", c.key_b)?;
-                    c.relative.write(s);
-                    c.information.write(s);
-                    s.varint(u64::from(c.inliers));
+            Body::LoopClosures(l) => write_closures(s, &l.closures)?,
+            Body::SeparatorGraph(g) => {
+                if g.origin >= doorslam_geometry::key::MAX_ROBOTS {
+                    return Err(WireError::invalid(
+                        "graph origin",
+                        s.offset(),
+                        "not below 26",
+                    ));
                 }
+                s.u8(g.origin);
+                s.varint(g.version);
+                write_closures(s, &g.edges)?;
             }
             Body::PoseEstimates(p) => write_estimates(s, p)?,
             Body::Ack(a) => write_ack(s, a)?,
@@ -455,32 +478,21 @@ impl Message {
                 }
                 Body::VerificationFeatures(VerificationFeatures { key, features })
             }
-            Kind::LoopClosures => {
-                let min = 2 * 2 + POSE_BYTES + INFORMATION_BYTES + 1;
-                let n = r.count("closure count", MAX_LOOP_CLOSURES, min)?;
-                let mut closures = Vec::with_capacity(n);
-                for _ in 0..n {
-                    let key_a = read_key(&mut r, "closure key a")?;
-                    let key_b = read_key(&mut r, "closure key b")?;
-                    let relative = Pose::read(&mut r, "closure pose")?;
-                    let information = Information::read(&mut r, "closure information")?;
-                    let offset = r.offset();
-                    let inliers = r.varint("closure inliers")?;
-                    let inliers = u32::try_from(inliers).map_err(|_| WireError::TooLong {
-                        field: "closure inliers",
-                        offset,
-                        len: inliers,
-                        max: u64::from(u32::MAX),
-                    })?;
-                    closures.push(LoopClosure {
-                        key_a,
-                        key_b,
-                        relative,
-                        information,
-                        inliers,
-                    });
+            Kind::LoopClosures => Body::LoopClosures(LoopClosures {
+                closures: read_closures(&mut r)?,
+            }),
+            Kind::SeparatorGraph => {
+                let offset = r.offset();
+                let origin = r.u8("graph origin")?;
+                if origin >= doorslam_geometry::key::MAX_ROBOTS {
+                    return Err(WireError::invalid("graph origin", offset, "not below 26"));
                 }
-                Body::LoopClosures(LoopClosures { closures })
+                let version = r.varint("graph version")?;
+                Body::SeparatorGraph(SeparatorGraph {
+                    origin,
+                    version,
+                    edges: read_closures(&mut r)?,
+                })
             }
             Kind::PoseEstimates => Body::PoseEstimates(read_estimates(&mut r)?),
             Kind::Ack => Body::Ack(read_ack(&mut r)?),
@@ -488,6 +500,47 @@ impl Message {
         r.finish()?;
         Ok(Message { header, body })
     }
+}
+
+fn write_closures(s: &mut impl Sink, closures: &[LoopClosure]) -> Result<(), WireError> {
+    check_count(s, "closure count", closures.len(), MAX_LOOP_CLOSURES)?;
+    s.varint(closures.len() as u64);
+    for c in closures {
+        write_key(s, "closure key a", c.key_a)?;
+        write_key(s, "closure key b", c.key_b)?;
+        c.relative.write(s);
+        c.information.write(s);
+        s.varint(u64::from(c.inliers));
+    }
+    Ok(())
+}
+
+fn read_closures(r: &mut Reader<'_>) -> Result<Vec<LoopClosure>, WireError> {
+    let min = 2 * 2 + POSE_BYTES + INFORMATION_BYTES + 1;
+    let n = r.count("closure count", MAX_LOOP_CLOSURES, min)?;
+    let mut closures = Vec::with_capacity(n);
+    for _ in 0..n {
+        let key_a = read_key(r, "closure key a")?;
+        let key_b = read_key(r, "closure key b")?;
+        let relative = Pose::read(r, "closure pose")?;
+        let information = Information::read(r, "closure information")?;
+        let offset = r.offset();
+        let inliers = r.varint("closure inliers")?;
+        let inliers = u32::try_from(inliers).map_err(|_| WireError::TooLong {
+            field: "closure inliers",
+            offset,
+            len: inliers,
+            max: u64::from(u32::MAX),
+        })?;
+        closures.push(LoopClosure {
+            key_a,
+            key_b,
+            relative,
+            information,
+            inliers,
+        });
+    }
+    Ok(closures)
 }
 
 fn write_estimates(s: &mut impl Sink, p: &PoseEstimates) -> Result<(), WireError> {

@@ -84,7 +84,7 @@ pub trait Chordal: LieGroup {
 /// Weights from an information matrix (rotation first, `d_rot` rotational dofs), as
 /// SE-Sync derives its isotropic weights: κ from the rotational block, τ from the
 /// translational one.
-fn isotropic_weights(info: &TangentMatrix, d_rot: usize, d_trans: usize) -> (f64, f64) {
+pub(crate) fn isotropic_weights(info: &TangentMatrix, d_rot: usize, d_trans: usize) -> (f64, f64) {
     let trace_inv = |offset: usize, n: usize| -> f64 {
         let block = info.view((offset, offset), (n, n)).into_owned();
         block
@@ -165,7 +165,7 @@ fn solve_translations(
 }
 
 /// Nearest rotation (Frobenius) to a 3×3 matrix.
-fn project_so3(m: &Matrix3<f64>) -> Matrix3<f64> {
+pub(crate) fn project_so3(m: &Matrix3<f64>) -> Matrix3<f64> {
     let svd = m.svd(true, true);
     let (u, vt) = (
         svd.u.unwrap_or_else(Matrix3::identity),

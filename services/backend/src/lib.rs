@@ -9,8 +9,11 @@
 //!   Levenberg-Marquardt on the sparse normal equations (faer Cholesky, symbolic
 //!   factorization reused), chordal initialization, robust kernels and GNC;
 //! - [`outliers`]: PCM (pairwise consistency + exact maximum clique);
+//! - [`distributed`]: distributed PGO — one agent per robot (two-stage distributed
+//!   Gauss-Seidel, then block-coordinate refinement) and an in-process team runner;
 //! - [`eval`]: trajectory IO (KITTI/TUM/EuRoC), Umeyama alignment, ATE/RPE as evo.
 
+pub mod distributed;
 pub mod eval;
 pub mod g2o;
 pub mod graph;

@@ -1,0 +1,1518 @@
+//! Distributed pose-graph optimization: each robot optimizes its own trajectory and
+//! exchanges only the estimates of its separator poses (poses touched by inter-robot loop
+//! closures), Choudhary et al. 2017's two-stage distributed Gauss-Seidel as DOOR-SLAM
+//! uses it (paper §III-C), followed by a distributed nonlinear refinement.
+//!
+//! One [`Agent`] per robot, with no networking inside: the caller moves the messages it
+//! returns ([`Agent::messages_for`]) to the neighbour's [`Agent::receive`] by any
+//! transport (the team link, or [`runner`]'s emulated link), and calls [`Agent::step`]
+//! when it wants the robot to iterate. Messages are the team's wire messages
+//! (`PoseEstimates` and `Ack`), so every byte is the encoded size.
+//!
+//! ## The stages, per robot
+//! 1. **Rotations** (chordal relaxation): one step solves the robot's rotation block of
+//!    `Σ κ ‖Rⱼ − Rᵢ Zᵢⱼ‖²_F` exactly with the neighbours' latest relaxed rotations fixed
+//!    (block Gauss-Seidel), over-relaxed by γ; until the change of the robot's relaxed
+//!    rotations (Frobenius norm over all its poses) is below `rotation_change`.
+//! 2. **Poses**: rotations projected onto SO(3) and fixed, one step solves the translation
+//!    block of `Σ τ ‖tⱼ − tᵢ − Rᵢ tᵢⱼ‖²` with the neighbours' latest translations fixed;
+//!    until the change is below `pose_change`. (The reference linearizes the full pose at
+//!    the rotation estimate with zero translation, where rotation and translation
+//!    decouple: its translation system is this one, and the rotation correction it adds
+//!    is left to stage 3 here.)
+//! 3. **Refinement**: block-coordinate descent on the full nonlinear cost — each step runs
+//!    the back-end's Levenberg-Marquardt on the robot's poses with the neighbours' latest
+//!    poses fixed (the exact cost, not a linearization), until the change is below
+//!    `refine_change`. The two linear stages are only as accurate as the chordal
+//!    relaxation; this stage is what reaches the centralized optimum.
+//!
+//! ## Gauge and flagged initialization
+//! The robot with the lowest id of a connected team anchors the gauge (its first pose is
+//! fixed where its odometry put it). Nobody knows the team: a robot takes itself as the
+//! anchor only while no robot it shares a closure with has a lower id, and every message
+//! names its sender's anchor, so a lower anchor spreads through the team and a robot that
+//! hears of one re-initializes in that frame. A robot sends estimates only once they are
+//! in its anchor's frame (it holds the gauge, or solved with a neighbour's estimates of
+//! that frame), so neighbours never mix frames; a robot without such estimates waits.
+//! This is the reference's "flagged initialization", without a fixed robot order.
+//!
+//! ## Messages and loss
+//! A robot sends a neighbour only the separators it shares closures with, and only those
+//! whose estimate moved by more than `send_rotation` / `send_pose` from what the
+//! neighbour is known to hold. Each message is acknowledged (`Ack` of kind
+//! `PoseEstimates`); a message not acknowledged when a later one was, or after
+//! `resend_after` steps, is taken as lost and its values become due again. So a dropped
+//! message costs a resend, never a stale neighbour estimate forever; a robot out of range
+//! keeps the last estimates it received and resumes when it returns. Stale (older
+//! sequence or generation), out-of-order and malformed messages are ignored or refused
+//! without touching the estimate. Nothing assumes clocks agree: order is by the sender's
+//! epoch and sequence.
+
+pub mod condensed;
+pub mod local;
+pub mod runner;
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+
+use crate::graph::EdgeError;
+use crate::init::{isotropic_weights, project_so3};
+use crate::solver::{SolveError, SolverOptions};
+use doorslam_geometry::information::{check_information, InformationCheck, InformationError};
+use doorslam_geometry::{key, LieGroup, TangentMatrix, SE3};
+use doorslam_ipc::wire::{
+    Ack, Body, CompactPose, Estimate, Header, Kind, Message, PoseEstimate, PoseEstimates,
+    QuantizeError, RelaxedRotation, RobotId, Stage, ESTIMATES_CONVERGED, MAX_POSE_ESTIMATES,
+};
+
+use local::{Fixed, OwnClosure, OwnEdge};
+
+/// Failures of the distributed back-end.
+#[derive(Debug, thiserror::Error)]
+pub enum DpgoError {
+    #[error("pose {key}: not a pose of robot {robot}")]
+    NotOwn { key: String, robot: u8 },
+    #[error("pose {0} has no robot letter: the distributed back-end needs multi-robot keys (GTSAM symbols, robot 'a' = 0)")]
+    NoRobot(String),
+    #[error("pose {0} is not known: add it before its edges")]
+    UnknownPose(String),
+    #[error("pose {0} is added twice")]
+    DuplicatePose(String),
+    #[error(
+        "edge {from} -> {to}: both poses are this robot's: add it as odometry, not as a closure"
+    )]
+    NotInterRobot { from: String, to: String },
+    #[error("edge {from} -> {to}: {source}")]
+    Information {
+        from: String,
+        to: String,
+        #[source]
+        source: InformationError,
+    },
+    #[error(transparent)]
+    Edge(#[from] EdgeError),
+    #[error(transparent)]
+    Solve(#[from] SolveError),
+    #[error("estimate of {key} cannot be sent: {source}")]
+    Quantize {
+        key: String,
+        #[source]
+        source: QuantizeError,
+    },
+    #[error("message from robot {from}: {reason}")]
+    BadMessage { from: u8, reason: String },
+}
+
+/// Options of an [`Agent`]. The defaults are tuned on the developer data (see
+/// BENCHMARKS.md); [`AgentOptions::paper`] gives DOOR-SLAM's KITTI thresholds.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AgentOptions {
+    /// Over-relaxation γ of the two linear stages (1 = plain Gauss-Seidel).
+    pub gamma: f64,
+    /// Stage 1 ends when the robot's relaxed rotations change by less than this
+    /// (Frobenius norm over all its poses).
+    pub rotation_change: f64,
+    /// Stage 2 ends when its translations change by less than this (m, norm over poses).
+    pub pose_change: f64,
+    /// Stage 3 converges when its poses change by less than this (norm over poses of
+    /// translation (m) and rotation (rad) change).
+    pub refine_change: f64,
+    /// A separator's relaxed rotation is resent when it moved more than this (Frobenius).
+    pub send_rotation: f64,
+    /// A separator's pose is resent when it moved more than this (m + rad).
+    pub send_pose: f64,
+    /// Steps after which an unacknowledged message is taken as lost.
+    pub resend_after: u64,
+    /// Steps a robot that converged in a stage waits for present neighbours that have not
+    /// (yet) sent anything in its frame before it moves on without them.
+    pub patience: u64,
+    /// Steps after which a stage ends even if it has not converged (the next stage
+    /// starts from where it is; the refinement corrects it).
+    pub max_stage_steps: u64,
+    /// Levenberg-Marquardt iterations per refinement step.
+    pub refine_iterations: usize,
+    /// Nesterov momentum on every stage's block updates, restarted whenever the change
+    /// grows (plain Gauss-Seidel / block-coordinate descent when false).
+    pub momentum: bool,
+    /// How the team's problem is solved.
+    pub method: Method,
+}
+
+/// The distributed solver.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// The paper's two-stage distributed Gauss-Seidel, then block-coordinate refinement:
+    /// neighbours exchange separator estimates every step.
+    Dgs,
+    /// Each robot condenses its trajectory onto its separators; the condensed graphs spread
+    /// through the team and every robot solves the separator graph, then its interior
+    /// ([`condensed`]).
+    #[default]
+    Condensed,
+}
+
+impl Default for AgentOptions {
+    fn default() -> Self {
+        Self {
+            gamma: 1.0,
+            rotation_change: 1e-2,
+            pose_change: 1e-2,
+            refine_change: 1e-3,
+            send_rotation: 1e-3,
+            send_pose: 1e-3,
+            resend_after: 4,
+            patience: 10,
+            max_stage_steps: 200,
+            refine_iterations: 10,
+            momentum: true,
+            method: Method::default(),
+        }
+    }
+}
+
+impl AgentOptions {
+    /// DOOR-SLAM's thresholds for its KITTI run: rotation change 0.1, pose change 0.5.
+    pub fn paper() -> Self {
+        Self {
+            rotation_change: 0.1,
+            pose_change: 0.5,
+            method: Method::Dgs,
+            ..Self::default()
+        }
+    }
+}
+
+/// What the robot holds of one neighbour, and what it knows the neighbour holds of it.
+#[derive(Debug, Default)]
+struct Neighbor {
+    /// Told by the caller (discovery): a neighbour out of range is not waited for.
+    present: bool,
+    /// The neighbour's latest state: (epoch, sequence) of the message that carried it.
+    state: Option<PeerState>,
+    /// The neighbour's separator estimates in its (= our) anchor frame.
+    rotations: BTreeMap<u64, Matrix3<f64>>,
+    poses: BTreeMap<u64, SE3>,
+    /// Received sequences of the neighbour's current epoch, for acknowledgements.
+    received: BTreeSet<u64>,
+    received_epoch: Option<u64>,
+    /// Every sequence below this was received; `received` holds those above.
+    received_next: u64,
+    ack_due: bool,
+    ack_sequence: u64,
+    /// Sending side: next sequence, messages in flight (sequence → step sent, contents),
+    /// and what the neighbour is known to hold.
+    next_sequence: u64,
+    in_flight: BTreeMap<u64, (u64, Sent)>,
+    confirmed: Sent,
+    /// The neighbour's epoch our confirmed state refers to (a restart forgets it).
+    confirmed_epoch: Option<u64>,
+    /// Condensed graphs: what the neighbour holds (origin → version), what is in flight
+    /// (sequence → step sent, origin, version), and the receiving side's sequences.
+    graphs_held: BTreeMap<u8, u64>,
+    graphs_in_flight: BTreeMap<u64, (u64, u8, u64)>,
+    graph_sequence: u64,
+    graph_received_epoch: Option<u64>,
+    graph_received_next: u64,
+    graph_received: BTreeSet<u64>,
+    graph_ack_due: bool,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PeerState {
+    epoch: u64,
+    sequence: u64,
+    generation: u64,
+    stage: Stage,
+    converged: bool,
+    anchor: u8,
+}
+
+/// The flags and values one message carried (or the neighbour holds).
+#[derive(Debug, Clone, Default)]
+struct Sent {
+    flags: Option<(u64, Stage, bool, u8)>,
+    rotations: BTreeMap<u64, Matrix3<f64>>,
+    poses: BTreeMap<u64, SE3>,
+}
+
+/// Counters of one agent.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct AgentStats {
+    pub steps: u64,
+    /// Steps that solved something (the others waited for a neighbour's estimates).
+    pub updates: u64,
+    pub messages_sent: u64,
+    pub bytes_sent: u64,
+    pub estimates_sent: u64,
+    pub resent: u64,
+    pub ignored_stale: u64,
+    pub refused: u64,
+    /// Re-initializations (a lower anchor heard, a neighbour's frame changed).
+    pub reinitializations: u64,
+}
+
+/// One robot's share of the distributed pose-graph optimization.
+#[derive(Debug)]
+pub struct Agent {
+    robot: u8,
+    id: RobotId,
+    epoch: u64,
+    options: AgentOptions,
+    keys: Vec<u64>,
+    index: BTreeMap<u64, usize>,
+    /// Current estimate: the anchor's frame once `anchored`, the odometry frame before.
+    poses: Vec<SE3>,
+    /// Stage-1 variables.
+    relaxed: Vec<Matrix3<f64>>,
+    /// Initial (odometry) estimate, to restart from when the frame changes.
+    initial: Vec<SE3>,
+    edges: Vec<OwnEdge>,
+    closures: Vec<OwnClosure>,
+    neighbors: BTreeMap<u8, Neighbor>,
+    stage: Stage,
+    stage_steps: u64,
+    /// Steps spent converged in the current stage while waiting for neighbours.
+    waiting: u64,
+    stage_converged: bool,
+    anchored: bool,
+    anchor: u8,
+    generation: u64,
+    /// Own poses solved in the anchor's frame (reachable from the gauge or a neighbour).
+    in_frame: Vec<bool>,
+    last_change: f64,
+    /// Accelerated block-coordinate descent (Nesterov momentum with adaptive restart, as
+    /// dpgo's RBCD++): the previous step's block solutions and the steps since a restart.
+    solution_relaxed: Vec<Matrix3<f64>>,
+    solution: Vec<SE3>,
+    momentum_steps: u64,
+    /// Condensed graphs known (origin → version, edges), this robot's own included, and
+    /// the versions the current estimate was solved with.
+    graphs: BTreeMap<u8, (u64, Vec<condensed::CondensedEdge>)>,
+    own_graph_dirty: bool,
+    own_graph_counter: u64,
+    solved_with: BTreeMap<u8, u64>,
+    stats: AgentStats,
+}
+
+impl Agent {
+    /// An agent for robot `robot` (0 = 'a'), identified on the wire as `id`; `epoch` is
+    /// its team-link epoch (incremented by the caller at every start).
+    pub fn new(robot: u8, id: RobotId, epoch: u64, options: AgentOptions) -> Self {
+        Self {
+            robot,
+            id,
+            epoch,
+            options,
+            keys: Vec::new(),
+            index: BTreeMap::new(),
+            poses: Vec::new(),
+            relaxed: Vec::new(),
+            initial: Vec::new(),
+            edges: Vec::new(),
+            closures: Vec::new(),
+            neighbors: BTreeMap::new(),
+            stage: Stage::Rotation,
+            stage_steps: 0,
+            waiting: 0,
+            stage_converged: false,
+            anchored: false,
+            anchor: robot,
+            generation: 0,
+            in_frame: Vec::new(),
+            last_change: f64::INFINITY,
+            solution_relaxed: Vec::new(),
+            solution: Vec::new(),
+            momentum_steps: 0,
+            graphs: BTreeMap::new(),
+            own_graph_dirty: true,
+            own_graph_counter: 0,
+            solved_with: BTreeMap::new(),
+            stats: AgentStats::default(),
+        }
+    }
+
+    pub fn robot(&self) -> u8 {
+        self.robot
+    }
+
+    fn own(&self, k: u64) -> Result<(), DpgoError> {
+        if key::robot(k) == Some(self.robot) {
+            Ok(())
+        } else {
+            Err(DpgoError::NotOwn {
+                key: key::label(k),
+                robot: self.robot,
+            })
+        }
+    }
+
+    /// Adds one of the robot's poses with its initial (odometry) estimate.
+    pub fn add_pose(&mut self, k: u64, initial: SE3) -> Result<(), DpgoError> {
+        self.own(k)?;
+        if self.index.contains_key(&k) {
+            return Err(DpgoError::DuplicatePose(key::label(k)));
+        }
+        self.index.insert(k, self.keys.len());
+        self.keys.push(k);
+        self.poses.push(initial);
+        self.initial.push(initial);
+        self.relaxed
+            .push(initial.rotation.to_rotation_matrix().into_inner());
+        self.in_frame.push(false);
+        self.solution.push(initial);
+        self.solution_relaxed
+            .push(initial.rotation.to_rotation_matrix().into_inner());
+        Ok(())
+    }
+
+    fn checked_information(a: u64, b: u64, information: &TangentMatrix) -> Result<(), DpgoError> {
+        check_information(information, 6, InformationCheck::PositiveDefinite).map_err(|source| {
+            DpgoError::Information {
+                from: key::label(a),
+                to: key::label(b),
+                source,
+            }
+        })
+    }
+
+    /// Adds an edge between two of the robot's poses (odometry or an intra-robot closure):
+    /// `z ≈ X_a⁻¹ X_b`, information rotation-first.
+    pub fn add_odometry(
+        &mut self,
+        a: u64,
+        b: u64,
+        z: SE3,
+        information: TangentMatrix,
+    ) -> Result<(), DpgoError> {
+        let i = *self
+            .index
+            .get(&a)
+            .ok_or_else(|| DpgoError::UnknownPose(key::label(a)))?;
+        let j = *self
+            .index
+            .get(&b)
+            .ok_or_else(|| DpgoError::UnknownPose(key::label(b)))?;
+        if i == j {
+            return Err(EdgeError::SelfLoop {
+                index: i,
+                label: key::label(a),
+            }
+            .into());
+        }
+        Self::checked_information(a, b, &information)?;
+        let (kappa, tau) = isotropic_weights(&information, 3, 3);
+        self.edges.push(OwnEdge {
+            i,
+            j,
+            z,
+            information,
+            kappa,
+            tau,
+        });
+        self.stage_converged = false;
+        self.own_graph_dirty = true;
+        Ok(())
+    }
+
+    /// Adds an inter-robot loop closure `z ≈ X_a⁻¹ X_b` where one of `a`, `b` is this
+    /// robot's (both robots of a closure add it). Accepted closures only: outlier
+    /// rejection runs before (PCM).
+    pub fn add_closure(
+        &mut self,
+        a: u64,
+        b: u64,
+        z: SE3,
+        information: TangentMatrix,
+    ) -> Result<(), DpgoError> {
+        Self::checked_information(a, b, &information)?;
+        let (ra, rb) = (key::robot(a), key::robot(b));
+        if ra == rb {
+            return Err(DpgoError::NotInterRobot {
+                from: key::label(a),
+                to: key::label(b),
+            });
+        }
+        // Seen from this robot: own → other.
+        let (own, other, z, information) = if ra == Some(self.robot) {
+            (a, b, z, information)
+        } else if rb == Some(self.robot) {
+            // r' = Log(z X_b⁻¹ X_a) = −Ad_z r: Ω' = Ad(z⁻¹)ᵀ Ω Ad(z⁻¹) (see local::prior_through).
+            let ad = z.inverse().adjoint();
+            let reversed = ad.transpose() * information * ad;
+            (b, a, z.inverse(), (reversed + reversed.transpose()) * 0.5)
+        } else {
+            return Err(DpgoError::NotOwn {
+                key: key::label(a),
+                robot: self.robot,
+            });
+        };
+        let Some(neighbor) = key::robot(other) else {
+            return Err(DpgoError::NotInterRobot {
+                from: key::label(a),
+                to: key::label(b),
+            });
+        };
+        let own = *self
+            .index
+            .get(&own)
+            .ok_or_else(|| DpgoError::UnknownPose(key::label(own)))?;
+        let (kappa, tau) = isotropic_weights(&information, 3, 3);
+        self.closures.push(OwnClosure {
+            own,
+            other,
+            z,
+            information,
+            kappa,
+            tau,
+        });
+        self.neighbors.entry(neighbor).or_default();
+        self.stage_converged = false;
+        self.own_graph_dirty = true;
+        // A new neighbour may have a lower id than our anchor.
+        self.update_anchor();
+        Ok(())
+    }
+
+    /// Discovery: a neighbour came into range (true) or left it (false). A neighbour out of
+    /// range is not waited for; its last estimates stay in use.
+    pub fn set_present(&mut self, neighbor: u8, present: bool) {
+        if let Some(n) = self.neighbors.get_mut(&neighbor) {
+            n.present = present;
+        }
+    }
+
+    /// The robots this one shares closures with.
+    pub fn neighbors(&self) -> impl Iterator<Item = u8> + '_ {
+        self.neighbors.keys().copied()
+    }
+
+    pub fn stage(&self) -> Stage {
+        self.stage
+    }
+
+    /// The robot whose first pose fixes this robot's frame.
+    pub fn anchor(&self) -> u8 {
+        self.anchor
+    }
+
+    /// Whether the estimate is in the anchor's frame (see the module documentation).
+    pub fn anchored(&self) -> bool {
+        self.anchored
+    }
+
+    pub fn stats(&self) -> AgentStats {
+        self.stats
+    }
+
+    /// The robot's poses, in the team's frame once [`Self::anchored`].
+    pub fn estimate(&self) -> impl Iterator<Item = (u64, &SE3)> + '_ {
+        self.keys.iter().copied().zip(&self.poses)
+    }
+
+    /// Converged: refinement finished here and at every present neighbour of the same
+    /// frame, and every neighbour holds our latest separators.
+    pub fn converged(&self) -> bool {
+        if self.options.method == Method::Condensed {
+            return self.condensed_converged();
+        }
+        let settled = self.stage == Stage::Refine && self.stage_converged;
+        settled
+            && self.neighbors.iter().all(|(_, n)| {
+                let peer_done = match n.state {
+                    Some(s) => s.anchor == self.anchor && s.stage == Stage::Refine && s.converged,
+                    None => false,
+                };
+                !n.present || (peer_done && n.in_flight.is_empty())
+            })
+    }
+
+    fn gauge(&self) -> Option<usize> {
+        (self.anchor == self.robot && !self.keys.is_empty()).then_some(0)
+    }
+
+    /// Lowest of: this robot if no closure partner is lower, and every anchor heard of.
+    fn update_anchor(&mut self) {
+        let lowest_partner = self.neighbors.keys().next().copied();
+        let mut anchor = match lowest_partner {
+            Some(p) if p < self.robot => u8::MAX,
+            _ => self.robot,
+        };
+        for n in self.neighbors.values() {
+            if let Some(s) = n.state {
+                anchor = anchor.min(s.anchor);
+            }
+        }
+        if anchor == u8::MAX {
+            // Waiting to hear the lower partner's frame; keep the current one meanwhile.
+            anchor = self.anchor.min(lowest_partner.unwrap_or(self.robot));
+        }
+        if anchor != self.anchor {
+            self.reinitialize(anchor);
+        }
+    }
+
+    /// Starts over in another frame: stage 1 from the odometry estimate, nothing sent
+    /// until the new frame reaches us, neighbours told by a new generation.
+    fn reinitialize(&mut self, anchor: u8) {
+        self.anchor = anchor;
+        self.anchored = false;
+        self.generation += 1;
+        self.stage = Stage::Rotation;
+        self.stage_steps = 0;
+        self.waiting = 0;
+        self.stage_converged = false;
+        self.poses.clone_from(&self.initial);
+        self.relaxed = self
+            .initial
+            .iter()
+            .map(|p| p.rotation.to_rotation_matrix().into_inner())
+            .collect();
+        self.in_frame.iter_mut().for_each(|f| *f = false);
+        self.last_change = f64::INFINITY;
+        self.reset_momentum();
+        self.stats.reinitializations += 1;
+        for n in self.neighbors.values_mut() {
+            n.confirmed = Sent::default();
+            n.in_flight.clear();
+            // Estimates in another frame than the new anchor's are useless now.
+            if n.state.is_some_and(|s| s.anchor != anchor) {
+                n.rotations.clear();
+                n.poses.clear();
+            }
+        }
+    }
+
+    /// The neighbour estimates usable in the current stage, per closure.
+    fn fixed_rotations(&self) -> Vec<Option<Matrix3<f64>>> {
+        self.closures
+            .iter()
+            .map(|c| {
+                let n = self.neighbors.get(&key::robot(c.other)?)?;
+                let s = n.state?;
+                if s.anchor != self.anchor {
+                    return None;
+                }
+                n.rotations.get(&c.other).copied().or_else(|| {
+                    n.poses
+                        .get(&c.other)
+                        .map(|p| p.rotation.to_rotation_matrix().into_inner())
+                })
+            })
+            .collect()
+    }
+
+    fn fixed_poses(&self) -> Vec<Option<SE3>> {
+        self.closures
+            .iter()
+            .map(|c| {
+                let n = self.neighbors.get(&key::robot(c.other)?)?;
+                let s = n.state?;
+                (s.anchor == self.anchor)
+                    .then(|| n.poses.get(&c.other).copied())
+                    .flatten()
+            })
+            .collect()
+    }
+
+    /// Own poses connected (through own edges) to the gauge or to a closure whose
+    /// neighbour estimate is usable: the part of the trajectory a step can put in the
+    /// anchor's frame.
+    fn reachable(&self, seeds: impl Iterator<Item = usize>) -> Vec<bool> {
+        let mut adj: Vec<Vec<usize>> = vec![Vec::new(); self.keys.len()];
+        for e in &self.edges {
+            adj[e.i].push(e.j);
+            adj[e.j].push(e.i);
+        }
+        let mut seen = vec![false; self.keys.len()];
+        let mut stack: Vec<usize> = seeds.collect();
+        for &s in &stack {
+            seen[s] = true;
+        }
+        while let Some(a) = stack.pop() {
+            for &b in &adj[a] {
+                if !seen[b] {
+                    seen[b] = true;
+                    stack.push(b);
+                }
+            }
+        }
+        seen
+    }
+
+    /// One iteration of the current stage. Returns whether anything was solved.
+    pub fn step(&mut self) -> Result<bool, DpgoError> {
+        if self.options.method == Method::Condensed {
+            return self.step_condensed();
+        }
+        self.stats.steps += 1;
+        self.update_anchor();
+        if self.keys.is_empty() {
+            return Ok(false);
+        }
+        let gauge = self.gauge();
+        let solved = match self.stage {
+            Stage::Rotation => self.step_rotations(gauge)?,
+            Stage::Pose => self.step_translations(gauge)?,
+            Stage::Refine => self.step_refine(gauge)?,
+        };
+        if !solved {
+            return Ok(false);
+        }
+        self.stats.updates += 1;
+        self.anchored = true;
+        self.stage_steps += 1;
+        let threshold = match self.stage {
+            Stage::Rotation => self.options.rotation_change,
+            Stage::Pose => self.options.pose_change,
+            Stage::Refine => self.options.refine_change,
+        };
+        self.stage_converged = self.last_change < threshold;
+        tracing::trace!(robot = self.robot, stage = ?self.stage, change = self.last_change, "step");
+        self.maybe_advance();
+        Ok(true)
+    }
+
+    /// The momentum weight of this step: Nesterov's (k − 1)/(k + 2), restarted (0) when the
+    /// block change grew since the last step.
+    fn momentum(&mut self, change: f64) -> f64 {
+        if !self.options.momentum || change > self.last_change {
+            self.momentum_steps = 0;
+            return 0.0;
+        }
+        self.momentum_steps += 1;
+        let k = self.momentum_steps as f64;
+        (k - 1.0) / (k + 2.0)
+    }
+
+    /// Restart the momentum from the current estimate (a new stage or frame).
+    fn reset_momentum(&mut self) {
+        self.momentum_steps = 0;
+        self.solution.clone_from(&self.poses);
+        self.solution_relaxed.clone_from(&self.relaxed);
+    }
+
+    /// Next stage once converged here and at the present neighbours of this frame (or
+    /// after `patience` steps of waiting, or `max_stage_steps` in the stage).
+    fn maybe_advance(&mut self) {
+        if self.stage == Stage::Refine {
+            return;
+        }
+        let forced = self.stage_steps >= self.options.max_stage_steps;
+        if !self.stage_converged && !forced {
+            return;
+        }
+        let neighbours_done = self.neighbors.values().all(|n| {
+            !n.present
+                || n.state.is_some_and(|s| {
+                    s.anchor == self.anchor
+                        && (s.stage > self.stage || (s.stage == self.stage && s.converged))
+                })
+        });
+        self.waiting += 1;
+        if neighbours_done || forced || self.waiting > self.options.patience {
+            tracing::debug!(
+                robot = self.robot,
+                stage = ?self.stage,
+                steps = self.stage_steps,
+                change = self.last_change,
+                neighbours_done,
+                forced,
+                "stage done"
+            );
+            self.stage = match self.stage {
+                Stage::Rotation => Stage::Pose,
+                _ => Stage::Refine,
+            };
+            self.stage_steps = 0;
+            self.waiting = 0;
+            self.stage_converged = false;
+            self.last_change = f64::INFINITY;
+            self.reset_momentum();
+        }
+    }
+
+    fn step_rotations(&mut self, gauge: Option<usize>) -> Result<bool, DpgoError> {
+        let other = self.fixed_rotations();
+        let seeds = gauge.into_iter().chain(
+            self.closures
+                .iter()
+                .zip(&other)
+                .filter(|(_, o)| o.is_some())
+                .map(|(c, _)| c.own),
+        );
+        let active = self.reachable(seeds);
+        if !active.iter().any(|a| *a) {
+            return Ok(false);
+        }
+        let fixed_own: Vec<Option<Matrix3<f64>>> = (0..self.keys.len())
+            .map(|p| (Some(p) == gauge).then(|| self.relaxed[p]))
+            .collect();
+        let new = local::solve_rotations(
+            &active,
+            &self.edges,
+            &self.closures,
+            Fixed {
+                own: &fixed_own,
+                other: &other,
+            },
+        )?;
+        let gamma = self.options.gamma;
+        // x⁺ = x + γ(solve − x), change |x⁺ − x_prev|, then y = x⁺ + β(x⁺ − x_prev).
+        let solved: Vec<(usize, Matrix3<f64>)> = new
+            .into_iter()
+            .enumerate()
+            .filter_map(|(p, r)| Some((p, self.relaxed[p] + (r? - self.relaxed[p]) * gamma)))
+            .collect();
+        let change = solved
+            .iter()
+            .map(|(p, x)| (x - self.solution_relaxed[*p]).norm_squared())
+            .sum::<f64>()
+            .sqrt();
+        let beta = self.momentum(change);
+        for (p, x) in solved {
+            self.relaxed[p] = x + (x - self.solution_relaxed[p]) * beta;
+            self.solution_relaxed[p] = x;
+            let q = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(
+                project_so3(&self.relaxed[p]),
+            ));
+            self.poses[p].rotation = q;
+        }
+        self.in_frame = active;
+        self.last_change = change;
+        Ok(true)
+    }
+
+    fn step_translations(&mut self, gauge: Option<usize>) -> Result<bool, DpgoError> {
+        let other = self.fixed_poses();
+        let seeds = gauge.into_iter().chain(
+            self.closures
+                .iter()
+                .zip(&other)
+                .filter(|(_, o)| o.is_some())
+                .map(|(c, _)| c.own),
+        );
+        let active = self.reachable(seeds);
+        if !active.iter().any(|a| *a) {
+            return Ok(false);
+        }
+        let rotations: Vec<Matrix3<f64>> = self
+            .poses
+            .iter()
+            .map(|p| p.rotation.to_rotation_matrix().into_inner())
+            .collect();
+        let fixed_own: Vec<Option<Vector3<f64>>> = (0..self.keys.len())
+            .map(|p| (Some(p) == gauge).then(|| self.poses[p].translation.vector))
+            .collect();
+        let other_t: Vec<Option<Vector3<f64>>> = other
+            .iter()
+            .map(|o| o.map(|p| p.translation.vector))
+            .collect();
+        let new = local::solve_translations(
+            &active,
+            &rotations,
+            &self.edges,
+            &self.closures,
+            Fixed {
+                own: &fixed_own,
+                other: &other_t,
+            },
+        )?;
+        let gamma = self.options.gamma;
+        let solved: Vec<(usize, Vector3<f64>)> = new
+            .into_iter()
+            .enumerate()
+            .filter_map(|(p, t)| {
+                let now = self.poses[p].translation.vector;
+                Some((p, now + (t? - now) * gamma))
+            })
+            .collect();
+        let change = solved
+            .iter()
+            .map(|(p, x)| (x - self.solution[*p].translation.vector).norm_squared())
+            .sum::<f64>()
+            .sqrt();
+        let beta = self.momentum(change);
+        for (p, x) in solved {
+            let prev = self.solution[p].translation.vector;
+            self.poses[p].translation = Translation3::from(x + (x - prev) * beta);
+            self.solution[p] = SE3::from_parts(Translation3::from(x), self.poses[p].rotation);
+        }
+        self.in_frame = active;
+        self.last_change = change;
+        Ok(true)
+    }
+
+    fn step_refine(&mut self, gauge: Option<usize>) -> Result<bool, DpgoError> {
+        let other = self.fixed_poses();
+        let seeds = gauge.into_iter().chain(
+            self.closures
+                .iter()
+                .zip(&other)
+                .filter(|(_, o)| o.is_some())
+                .map(|(c, _)| c.own),
+        );
+        let active = self.reachable(seeds);
+        if !active.iter().any(|a| *a) {
+            return Ok(false);
+        }
+        let options = SolverOptions {
+            max_iterations: self.options.refine_iterations,
+            ..SolverOptions::default()
+        };
+        let new = local::refine(
+            &active,
+            &self.poses,
+            gauge,
+            &self.edges,
+            &self.closures,
+            &other,
+            &options,
+        )?;
+        let solved: Vec<(usize, SE3)> = new
+            .into_iter()
+            .enumerate()
+            .filter_map(|(p, x)| Some((p, x?)))
+            .collect();
+        let change = solved
+            .iter()
+            .map(|(p, x)| self.solution[*p].inverse().compose(x).log().norm_squared())
+            .sum::<f64>()
+            .sqrt();
+        let beta = self.momentum(change);
+        for (p, x) in solved {
+            // y = x ⊕ β (x ⊖ x_prev), along the step on the manifold.
+            let step = self.solution[p].inverse().compose(&x).log();
+            self.poses[p] = x.compose(&SE3::exp(&(step * beta)));
+            self.solution[p] = x;
+        }
+        self.in_frame = active;
+        self.last_change = change;
+        Ok(true)
+    }
+
+    /// Own separator poses shared with `neighbor` that are in the anchor's frame.
+    fn separators_for(&self, neighbor: u8) -> BTreeSet<usize> {
+        self.closures
+            .iter()
+            .filter(|c| key::robot(c.other) == Some(neighbor) && self.in_frame[c.own])
+            .map(|c| c.own)
+            .collect()
+    }
+
+    fn flags(&self) -> (u64, Stage, bool, u8) {
+        (
+            self.generation,
+            self.stage,
+            self.stage_converged,
+            self.anchor,
+        )
+    }
+
+    /// The messages due to `neighbor` now: its acknowledgement if we received something,
+    /// and our separator estimates that moved beyond the send threshold from what it
+    /// holds (plus our state if it changed), resending what was lost.
+    pub fn messages_for(&mut self, neighbor: u8) -> Result<Vec<Message>, DpgoError> {
+        if self.options.method == Method::Condensed {
+            return self.graph_messages_for(neighbor);
+        }
+        let step = self.stats.steps;
+        let separators = self.separators_for(neighbor);
+        let flags = self.flags();
+        let stage = self.stage;
+        let rotation_stage = stage == Stage::Rotation;
+        let mut values: Vec<(u64, Estimate)> = Vec::new();
+        let mut out = Vec::new();
+        let mut carried = Sent::default();
+        let (send_rotation, send_pose, resend_after) = (
+            self.options.send_rotation,
+            self.options.send_pose,
+            self.options.resend_after,
+        );
+        let Some(n) = self.neighbors.get_mut(&neighbor) else {
+            return Ok(out);
+        };
+        // Acknowledge what we received of the neighbour's current epoch.
+        if n.ack_due {
+            if let Some(epoch) = n.received_epoch {
+                out.push(ack_message(
+                    &self.id,
+                    self.epoch,
+                    n.ack_sequence,
+                    epoch,
+                    n.received_next,
+                    &n.received,
+                ));
+                n.ack_sequence += 1;
+                n.ack_due = false;
+            }
+        }
+        // Lost: unacknowledged for `resend_after` steps.
+        let lost: Vec<u64> = n
+            .in_flight
+            .iter()
+            .filter(|(_, (sent, _))| step.saturating_sub(*sent) >= resend_after)
+            .map(|(&s, _)| s)
+            .collect();
+        for s in lost {
+            n.in_flight.remove(&s);
+            self.stats.resent += 1;
+        }
+        if !self.anchored {
+            return Ok(out);
+        }
+        // Latest value of each key as the neighbour holds it or will once in flight arrives.
+        let mut view = n.confirmed.clone();
+        for (_, sent) in n.in_flight.values() {
+            view.flags = sent.flags.or(view.flags);
+            view.rotations
+                .extend(sent.rotations.iter().map(|(k, v)| (*k, *v)));
+            view.poses.extend(sent.poses.iter().map(|(k, v)| (*k, *v)));
+        }
+        for &p in &separators {
+            let k = self.keys[p];
+            if rotation_stage {
+                let r = self.relaxed[p];
+                let due = view
+                    .rotations
+                    .get(&k)
+                    .is_none_or(|held| (held - r).norm() > send_rotation);
+                if due {
+                    let q = RelaxedRotation::quantize(&matrix_rows(&r)).map_err(|source| {
+                        DpgoError::Quantize {
+                            key: key::label(k),
+                            source,
+                        }
+                    })?;
+                    carried.rotations.insert(k, matrix_from_rows(&q.matrix()));
+                    values.push((k, Estimate::Rotation(q)));
+                }
+            } else {
+                let x = self.poses[p];
+                let due = view
+                    .poses
+                    .get(&k)
+                    .is_none_or(|held| pose_distance(held, &x) > send_pose);
+                if due {
+                    let q = CompactPose::quantize(&x).map_err(|source| DpgoError::Quantize {
+                        key: key::label(k),
+                        source,
+                    })?;
+                    carried.poses.insert(k, *q.se3());
+                    values.push((k, Estimate::Pose(q)));
+                }
+            }
+        }
+        if values.is_empty() && view.flags == Some(flags) {
+            return Ok(out);
+        }
+        carried.flags = Some(flags);
+        for chunk in values.chunks(MAX_POSE_ESTIMATES).chain(
+            // An empty message still tells the neighbour our state.
+            values.is_empty().then_some(&values[..0]),
+        ) {
+            let sequence = n.next_sequence;
+            n.next_sequence += 1;
+            let m = Message::new(
+                Header {
+                    sender: self.id.clone(),
+                    epoch: self.epoch,
+                    sequence,
+                },
+                Body::PoseEstimates(PoseEstimates {
+                    optimization: self.generation,
+                    round: self.stage_steps,
+                    stage,
+                    flags: if self.stage_converged {
+                        ESTIMATES_CONVERGED
+                    } else {
+                        0
+                    },
+                    anchor: self.anchor,
+                    estimates: chunk
+                        .iter()
+                        .map(|(key, value)| PoseEstimate {
+                            key: *key,
+                            value: value.clone(),
+                        })
+                        .collect(),
+                }),
+            );
+            self.stats.estimates_sent += chunk.len() as u64;
+            out.push(m);
+        }
+        // All chunks carry the same state; record the values once under the last sequence.
+        if let Some(last) = n.next_sequence.checked_sub(1) {
+            n.in_flight.insert(last, (step, carried));
+        }
+        for m in &out {
+            self.stats.messages_sent += 1;
+            self.stats.bytes_sent += m.encoded_len() as u64;
+        }
+        Ok(out)
+    }
+
+    /// Takes one message from `neighbor`. Malformed input (estimates of another robot's
+    /// poses, of poses we share no closure with, a message kind the back-end does not use)
+    /// is refused with an error and changes nothing; stale or out-of-order messages are
+    /// ignored (`Ok(false)`).
+    pub fn receive(&mut self, neighbor: u8, message: &Message) -> Result<bool, DpgoError> {
+        let refuse = |reason: String| DpgoError::BadMessage {
+            from: neighbor,
+            reason,
+        };
+        let wanted: BTreeSet<u64> = self
+            .closures
+            .iter()
+            .filter(|c| key::robot(c.other) == Some(neighbor))
+            .map(|c| c.other)
+            .collect();
+        let Some(n) = self.neighbors.get_mut(&neighbor) else {
+            self.stats.refused += 1;
+            return Err(refuse("no closure with this robot".into()));
+        };
+        let h = &message.header;
+        match &message.body {
+            Body::SeparatorGraph(g) => self.receive_graph(neighbor, h, g),
+            Body::Ack(a) if a.kind == Kind::SeparatorGraph => {
+                self.receive_graph_ack(neighbor, h, a)
+            }
+            Body::Ack(a) => {
+                if a.kind != Kind::PoseEstimates {
+                    self.stats.refused += 1;
+                    return Err(refuse(format!("ack of kind {}", a.kind.name())));
+                }
+                if a.epoch != self.epoch {
+                    self.stats.ignored_stale += 1;
+                    return Ok(false);
+                }
+                // The neighbour restarted since it confirmed anything: it holds nothing.
+                if n.confirmed_epoch != Some(h.epoch) {
+                    n.confirmed = Sent::default();
+                    n.confirmed_epoch = Some(h.epoch);
+                }
+                let acked = |s: u64| s < a.next || a.received.iter().any(|r| r.contains(&s));
+                let highest = n.in_flight.keys().copied().filter(|&s| acked(s)).max();
+                let seqs: Vec<u64> = n.in_flight.keys().copied().collect();
+                for s in seqs {
+                    if acked(s) {
+                        if let Some((_, sent)) = n.in_flight.remove(&s) {
+                            n.confirmed.flags = sent.flags.or(n.confirmed.flags);
+                            n.confirmed.rotations.extend(sent.rotations);
+                            n.confirmed.poses.extend(sent.poses);
+                        }
+                    } else if highest.is_some_and(|h| s < h) {
+                        // A later message arrived and this one did not: lost.
+                        n.in_flight.remove(&s);
+                        self.stats.resent += 1;
+                    }
+                }
+                Ok(true)
+            }
+            Body::PoseEstimates(p) => {
+                if let Some(e) = p.estimates.iter().find(|e| !wanted.contains(&e.key)) {
+                    self.stats.refused += 1;
+                    return Err(refuse(format!(
+                        "estimate of {}, which shares no closure with robot {}",
+                        key::label(e.key),
+                        self.robot
+                    )));
+                }
+                // Acknowledge whatever we accept or ignore as stale: it arrived.
+                if n.received_epoch.is_none_or(|e| h.epoch > e) {
+                    if n.received_epoch.is_some() {
+                        // The neighbour restarted: it lost what we sent it.
+                        n.confirmed = Sent::default();
+                        n.in_flight.clear();
+                    }
+                    n.received_epoch = Some(h.epoch);
+                    n.received.clear();
+                    n.received_next = 0;
+                } else if n.received_epoch.is_some_and(|e| h.epoch < e) {
+                    self.stats.ignored_stale += 1;
+                    return Ok(false);
+                }
+                if h.sequence >= n.received_next {
+                    n.received.insert(h.sequence);
+                    while n.received.remove(&n.received_next) {
+                        n.received_next += 1;
+                    }
+                }
+                n.ack_due = true;
+                // Within an epoch sequences only grow; a new epoch is a restart.
+                let fresh = n
+                    .state
+                    .is_none_or(|s| (h.epoch, h.sequence) > (s.epoch, s.sequence));
+                if !fresh {
+                    self.stats.ignored_stale += 1;
+                    return Ok(false);
+                }
+                let new_frame = n.state.is_none_or(|s| {
+                    s.epoch != h.epoch || s.generation != p.optimization || s.anchor != p.anchor
+                });
+                if new_frame {
+                    n.rotations.clear();
+                    n.poses.clear();
+                }
+                n.state = Some(PeerState {
+                    epoch: h.epoch,
+                    sequence: h.sequence,
+                    generation: p.optimization,
+                    stage: p.stage,
+                    converged: p.flags & ESTIMATES_CONVERGED != 0,
+                    anchor: p.anchor,
+                });
+                for e in &p.estimates {
+                    match &e.value {
+                        Estimate::Rotation(r) => {
+                            n.rotations.insert(e.key, matrix_from_rows(&r.matrix()));
+                        }
+                        Estimate::Pose(q) => {
+                            n.rotations.remove(&e.key);
+                            n.poses.insert(e.key, *q.se3());
+                        }
+                    }
+                }
+                // A neighbour's move to a later stage or new values un-settle ours.
+                if !p.estimates.is_empty() {
+                    self.stage_converged = false;
+                }
+                self.update_anchor();
+                Ok(true)
+            }
+            other => {
+                self.stats.refused += 1;
+                Err(refuse(format!(
+                    "kind {} is not a back-end message",
+                    other.kind().name()
+                )))
+            }
+        }
+    }
+}
+
+/// The condensed refinement's side of the agent (see [`condensed`]).
+impl Agent {
+    /// Graph versions: the epoch in the high bits, so a restarted robot's graphs
+    /// replace its old ones.
+    fn own_version(&self) -> u64 {
+        (self.epoch << 32) | (self.own_graph_counter & 0xffff_ffff)
+    }
+
+    fn step_condensed(&mut self) -> Result<bool, DpgoError> {
+        self.stats.steps += 1;
+        self.stage = Stage::Refine;
+        if self.keys.is_empty() {
+            return Ok(false);
+        }
+        if self.own_graph_dirty {
+            let edges = condensed::condense(self.robot, &self.keys, &self.edges, &self.closures)?;
+            self.own_graph_counter += 1;
+            let v = self.own_version();
+            self.graphs.insert(self.robot, (v, edges));
+            self.own_graph_dirty = false;
+        }
+        let versions: BTreeMap<u8, u64> = self.graphs.iter().map(|(o, (v, _))| (*o, *v)).collect();
+        if versions == self.solved_with {
+            self.stage_converged = true;
+            return Ok(false);
+        }
+        let graphs: BTreeMap<u8, Vec<condensed::CondensedEdge>> = self
+            .graphs
+            .iter()
+            .map(|(o, (_, e))| (*o, e.clone()))
+            .collect();
+        let separators = condensed::solve_separators(&graphs, self.keys[0])?;
+        let fixed: Vec<Option<SE3>> = self
+            .keys
+            .iter()
+            .map(|k| separators.get(k).copied())
+            .collect();
+        self.poses = condensed::solve_interior(&self.poses, &self.edges, &fixed)?;
+        // The team frame is the lowest robot's first pose at the identity.
+        self.anchor = separators
+            .keys()
+            .next()
+            .and_then(|k| key::robot(*k))
+            .unwrap_or(self.robot);
+        self.anchored = true;
+        self.in_frame = vec![true; self.keys.len()];
+        self.solved_with = versions;
+        self.stage_converged = true;
+        self.stats.updates += 1;
+        Ok(true)
+    }
+
+    fn condensed_converged(&self) -> bool {
+        let versions: BTreeMap<u8, u64> = self.graphs.iter().map(|(o, (v, _))| (*o, *v)).collect();
+        !self.own_graph_dirty
+            && versions == self.solved_with
+            && self.neighbors.iter().all(|(&id, n)| {
+                !n.present
+                    || (n.graphs_in_flight.is_empty()
+                        && !n.graph_ack_due
+                        && self
+                            .graphs
+                            .iter()
+                            .filter(|(o, _)| **o != id)
+                            .all(|(o, (v, _))| n.graphs_held.get(o).is_some_and(|h| h >= v)))
+            })
+    }
+
+    fn graph_messages_for(&mut self, neighbor: u8) -> Result<Vec<Message>, DpgoError> {
+        let step = self.stats.steps;
+        let resend_after = self.options.resend_after;
+        let mut out = Vec::new();
+        let Some(n) = self.neighbors.get_mut(&neighbor) else {
+            return Ok(out);
+        };
+        if n.graph_ack_due {
+            if let Some(epoch) = n.graph_received_epoch {
+                let mut ack = ack_message(
+                    &self.id,
+                    self.epoch,
+                    n.ack_sequence,
+                    epoch,
+                    n.graph_received_next,
+                    &n.graph_received,
+                );
+                if let Body::Ack(a) = &mut ack.body {
+                    a.kind = Kind::SeparatorGraph;
+                }
+                n.ack_sequence += 1;
+                n.graph_ack_due = false;
+                out.push(ack);
+            }
+        }
+        let lost: Vec<u64> = n
+            .graphs_in_flight
+            .iter()
+            .filter(|(_, (sent, _, _))| step.saturating_sub(*sent) >= resend_after)
+            .map(|(&s, _)| s)
+            .collect();
+        for s in lost {
+            n.graphs_in_flight.remove(&s);
+            self.stats.resent += 1;
+        }
+        for (&origin, (version, edges)) in &self.graphs {
+            if origin == neighbor {
+                continue;
+            }
+            let held = n.graphs_held.get(&origin).copied();
+            let flying = n
+                .graphs_in_flight
+                .values()
+                .filter(|(_, o, _)| *o == origin)
+                .map(|(_, _, v)| *v)
+                .max();
+            if held.max(flying).is_some_and(|h| h >= *version) {
+                continue;
+            }
+            if edges.len() > doorslam_ipc::wire::MAX_LOOP_CLOSURES {
+                return Err(DpgoError::BadMessage {
+                    from: origin,
+                    reason: format!(
+                        "condensed graph of {} edges: more than one message carries ({})",
+                        edges.len(),
+                        doorslam_ipc::wire::MAX_LOOP_CLOSURES
+                    ),
+                });
+            }
+            let mut wire_edges = Vec::with_capacity(edges.len());
+            for e in edges {
+                let quantize = |reason: String| DpgoError::BadMessage {
+                    from: origin,
+                    reason: format!("edge {} -> {}: {reason}", key::label(e.a), key::label(e.b)),
+                };
+                wire_edges.push(doorslam_ipc::wire::LoopClosure {
+                    key_a: e.a,
+                    key_b: e.b,
+                    relative: doorslam_ipc::wire::Pose::from_se3(&e.z)
+                        .map_err(|x| quantize(x.to_string()))?,
+                    information: doorslam_ipc::wire::Information::from_matrix(&e.information)
+                        .map_err(|x| quantize(x.to_string()))?,
+                    inliers: 0,
+                });
+            }
+            let sequence = n.graph_sequence;
+            n.graph_sequence += 1;
+            n.graphs_in_flight
+                .insert(sequence, (step, origin, *version));
+            out.push(Message::new(
+                Header {
+                    sender: self.id.clone(),
+                    epoch: self.epoch,
+                    sequence,
+                },
+                Body::SeparatorGraph(doorslam_ipc::wire::SeparatorGraph {
+                    origin,
+                    version: *version,
+                    edges: wire_edges,
+                }),
+            ));
+        }
+        for m in &out {
+            self.stats.messages_sent += 1;
+            self.stats.bytes_sent += m.encoded_len() as u64;
+        }
+        Ok(out)
+    }
+
+    fn receive_graph(
+        &mut self,
+        neighbor: u8,
+        h: &Header,
+        g: &doorslam_ipc::wire::SeparatorGraph,
+    ) -> Result<bool, DpgoError> {
+        let edges: Vec<condensed::CondensedEdge> = g
+            .edges
+            .iter()
+            .map(|e| condensed::CondensedEdge {
+                a: e.key_a,
+                b: e.key_b,
+                z: *e.relative.se3(),
+                information: *e.information.matrix(),
+            })
+            .collect();
+        if let Err(reason) = condensed::check_graph(g.origin, &edges) {
+            self.stats.refused += 1;
+            return Err(DpgoError::BadMessage {
+                from: neighbor,
+                reason,
+            });
+        }
+        if g.origin == self.robot {
+            self.stats.refused += 1;
+            return Err(DpgoError::BadMessage {
+                from: neighbor,
+                reason: "a graph of this robot's own trajectory".into(),
+            });
+        }
+        let Some(n) = self.neighbors.get_mut(&neighbor) else {
+            self.stats.refused += 1;
+            return Err(DpgoError::BadMessage {
+                from: neighbor,
+                reason: "no closure with this robot".into(),
+            });
+        };
+        if n.graph_received_epoch.is_none_or(|e| h.epoch > e) {
+            if n.graph_received_epoch.is_some() {
+                n.graphs_held.clear();
+                n.graphs_in_flight.clear();
+            }
+            n.graph_received_epoch = Some(h.epoch);
+            n.graph_received.clear();
+            n.graph_received_next = 0;
+        } else if n.graph_received_epoch.is_some_and(|e| h.epoch < e) {
+            self.stats.ignored_stale += 1;
+            return Ok(false);
+        }
+        if h.sequence >= n.graph_received_next {
+            n.graph_received.insert(h.sequence);
+            while n.graph_received.remove(&n.graph_received_next) {
+                n.graph_received_next += 1;
+            }
+        }
+        n.graph_ack_due = true;
+        // The sender holds it: no need to send it back.
+        let held = n.graphs_held.entry(g.origin).or_insert(0);
+        *held = (*held).max(g.version);
+        let newer = self
+            .graphs
+            .get(&g.origin)
+            .is_none_or(|(v, _)| g.version > *v);
+        if !newer {
+            self.stats.ignored_stale += 1;
+            return Ok(false);
+        }
+        self.graphs.insert(g.origin, (g.version, edges));
+        Ok(true)
+    }
+
+    fn receive_graph_ack(&mut self, neighbor: u8, h: &Header, a: &Ack) -> Result<bool, DpgoError> {
+        let Some(n) = self.neighbors.get_mut(&neighbor) else {
+            self.stats.refused += 1;
+            return Err(DpgoError::BadMessage {
+                from: neighbor,
+                reason: "no closure with this robot".into(),
+            });
+        };
+        if a.epoch != self.epoch {
+            self.stats.ignored_stale += 1;
+            return Ok(false);
+        }
+        if n.confirmed_epoch != Some(h.epoch) {
+            n.graphs_held.clear();
+            n.confirmed_epoch = Some(h.epoch);
+        }
+        let acked = |s: u64| s < a.next || a.received.iter().any(|r| r.contains(&s));
+        let highest = n
+            .graphs_in_flight
+            .keys()
+            .copied()
+            .filter(|&s| acked(s))
+            .max();
+        let seqs: Vec<u64> = n.graphs_in_flight.keys().copied().collect();
+        for s in seqs {
+            if acked(s) {
+                if let Some((_, origin, version)) = n.graphs_in_flight.remove(&s) {
+                    let held = n.graphs_held.entry(origin).or_insert(0);
+                    *held = (*held).max(version);
+                }
+            } else if highest.is_some_and(|hi| s < hi) {
+                n.graphs_in_flight.remove(&s);
+                self.stats.resent += 1;
+            }
+        }
+        Ok(true)
+    }
+}
+
+fn ack_message(
+    id: &RobotId,
+    own_epoch: u64,
+    sequence: u64,
+    epoch: u64,
+    next: u64,
+    received: &BTreeSet<u64>,
+) -> Message {
+    // All below `next` received; then the ranges above it.
+    let mut ranges: Vec<std::ops::Range<u64>> = Vec::new();
+    for &s in received.range(next + 1..) {
+        match ranges.last_mut() {
+            Some(r) if r.end == s => r.end += 1,
+            _ => ranges.push(s..s + 1),
+        }
+    }
+    // The newest ranges matter most for loss detection; the wire bounds their number.
+    let skip = ranges
+        .len()
+        .saturating_sub(doorslam_ipc::wire::MAX_ACK_RANGES);
+    Message::new(
+        Header {
+            sender: id.clone(),
+            epoch: own_epoch,
+            sequence,
+        },
+        Body::Ack(Ack {
+            epoch,
+            kind: Kind::PoseEstimates,
+            next,
+            received: ranges.split_off(skip),
+        }),
+    )
+}
+
+fn matrix_rows(m: &Matrix3<f64>) -> [[f64; 3]; 3] {
+    std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))
+}
+
+fn matrix_from_rows(m: &[[f64; 3]; 3]) -> Matrix3<f64> {
+    Matrix3::from_fn(|r, c| m[r][c])
+}
+
+/// Translation distance plus rotation angle.
+fn pose_distance(a: &SE3, b: &SE3) -> f64 {
+    (a.translation.vector - b.translation.vector).norm() + a.rotation.angle_to(&b.rotation)
+}

@@ -1,0 +1,429 @@
+//! N agents in one process over an emulated link: message loss, robots that join late,
+//! robots out of range for a while. Every message is encoded, counted, dropped or
+//! delivered as bytes, and decoded by the receiver, as over the team link.
+//!
+//! The reference the result is measured against is the back-end core on the merged
+//! graph (chordal initialization + Levenberg-Marquardt, `doorslam pgo`'s default) with
+//! the same pose fixed, so trajectories compare without alignment.
+
+use std::collections::BTreeMap;
+use std::ops::Range;
+use std::time::Instant;
+
+use doorslam_geometry::{key, LieGroup, TangentMatrix, SE3};
+use doorslam_ipc::wire::{
+    Body, CompactPose, Estimate, Header, Information, LoopClosure, LoopClosures, Message, Pose,
+    PoseEstimate, PoseEstimates, RobotId, Stage, MAX_LOOP_CLOSURES, MAX_POSE_ESTIMATES,
+};
+
+use super::{Agent, AgentOptions, DpgoError};
+use crate::graph::{EdgeClass, PoseGraph};
+use crate::init::Chordal;
+use crate::solver::{optimize, SolverOptions};
+
+/// How the team is played.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunOptions {
+    pub agent: AgentOptions,
+    /// Probability that a message is lost.
+    pub drop: f64,
+    /// Seed of the loss draws.
+    pub seed: u64,
+    /// Rounds (every robot steps once per round, lowest id first: Gauss-Seidel order).
+    pub max_rounds: u64,
+    /// Robot → round at which it joins (its closures appear then, on both sides).
+    pub join_at: BTreeMap<u8, u64>,
+    /// Robot → rounds during which it is out of range of everyone.
+    pub outage: BTreeMap<u8, Range<u64>>,
+}
+
+impl Default for RunOptions {
+    fn default() -> Self {
+        Self {
+            agent: AgentOptions::default(),
+            drop: 0.0,
+            seed: 1,
+            max_rounds: 500,
+            join_at: BTreeMap::new(),
+            outage: BTreeMap::new(),
+        }
+    }
+}
+
+/// What a run did, `doorslam dpgo --json`'s fields.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct RunReport {
+    pub method: super::Method,
+    pub robots: usize,
+    /// Rounds until every robot converged (or `max_rounds`).
+    pub iterations: u64,
+    pub messages: u64,
+    /// Encoded bytes of every message sent, delivered or not.
+    pub bytes: u64,
+    /// Sending every robot's graph to the lowest robot and the result back, in the same
+    /// encoding (closures/odometry as `LoopClosures`, results as compact `PoseEstimates`).
+    pub bytes_centralized: u64,
+    pub bytes_ratio: f64,
+    pub centralized_chi2: f64,
+    pub distributed_chi2: f64,
+    /// (distributed − centralized) / centralized.
+    pub chi2_gap: f64,
+    /// RMSE (m) between each pose's distributed and centralized translation.
+    pub ate_to_centralized: f64,
+    pub time_s: f64,
+    pub converged: bool,
+    pub dropped: u64,
+    pub resent: u64,
+    pub refused: u64,
+    pub reinitializations: u64,
+    pub separators: usize,
+    pub poses: usize,
+}
+
+/// Deterministic loss draws (splitmix64): runs repeat exactly.
+struct Draws(u64);
+
+impl Draws {
+    fn next_f64(&mut self) -> f64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        (z >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// The robot ids on the wire: the key letter.
+fn robot_id(robot: u8) -> Result<RobotId, DpgoError> {
+    let c = (b'a' + robot) as char;
+    RobotId::new(&c.to_string()).map_err(|e| DpgoError::BadMessage {
+        from: robot,
+        reason: e.to_string(),
+    })
+}
+
+/// `z ≈ X_a⁻¹ X_b` with its information, by key.
+type Edge = (u64, u64, SE3, TangentMatrix);
+
+/// One robot's part of a merged graph.
+#[derive(Debug, Default)]
+struct RobotPart {
+    poses: Vec<(u64, SE3)>,
+    odometry: Vec<Edge>,
+}
+
+fn robot_of(k: u64) -> Result<u8, DpgoError> {
+    key::robot(k).ok_or_else(|| DpgoError::NoRobot(key::label(k)))
+}
+
+/// Splits a merged team graph by the robot of each key. Each robot's initial estimate is
+/// its own odometry chained from its first pose (what a robot knows before it meets
+/// anyone), in key order.
+fn split(graph: &PoseGraph<SE3>) -> Result<(BTreeMap<u8, RobotPart>, Vec<Edge>), DpgoError> {
+    let mut parts: BTreeMap<u8, RobotPart> = BTreeMap::new();
+    let mut order: Vec<usize> = (0..graph.len()).collect();
+    order.sort_by_key(|&p| graph.keys()[p]);
+    for p in order {
+        let k = graph.keys()[p];
+        parts
+            .entry(robot_of(k)?)
+            .or_default()
+            .poses
+            .push((k, graph.poses()[p]));
+    }
+    let mut closures = Vec::new();
+    for e in graph.edges() {
+        let (a, b) = (graph.keys()[e.i], graph.keys()[e.j]);
+        if graph.edge_class(e) == EdgeClass::InterLoop {
+            closures.push((a, b, e.measured, e.information));
+        } else {
+            parts
+                .entry(robot_of(a)?)
+                .or_default()
+                .odometry
+                .push((a, b, e.measured, e.information));
+        }
+    }
+    // Initial estimate: chain own edges from the first pose.
+    for part in parts.values_mut() {
+        let mut sub = PoseGraph::<SE3>::new();
+        for (k, x) in &part.poses {
+            sub.add_pose(*k, *x);
+        }
+        for (a, b, z, info) in &part.odometry {
+            let (i, j) = (
+                sub.index_of(*a).unwrap_or_default(),
+                sub.index_of(*b).unwrap_or_default(),
+            );
+            sub.add_edge(i, j, *z, *info)?;
+        }
+        let known: Vec<bool> = (0..sub.len()).map(|p| p == 0).collect();
+        crate::init::chain(&mut sub, 0, &known);
+        for (slot, x) in part.poses.iter_mut().zip(sub.poses()) {
+            slot.1 = *x;
+        }
+    }
+    Ok((parts, closures))
+}
+
+/// Bytes of the centralized alternative in the same encoding: every robot but the lowest
+/// sends its edges (odometry and the closures no lower robot sends), the lowest sends
+/// each its optimized poses back.
+fn centralized_bytes(parts: &BTreeMap<u8, RobotPart>, closures: &[Edge]) -> Result<u64, DpgoError> {
+    let Some(&central) = parts.keys().next() else {
+        return Ok(0);
+    };
+    let quantize = |k: u64, e: doorslam_ipc::wire::QuantizeError| DpgoError::Quantize {
+        key: key::label(k),
+        source: e,
+    };
+    let edge = |a: u64, b: u64, z: &SE3, info: &TangentMatrix| -> Result<LoopClosure, DpgoError> {
+        Ok(LoopClosure {
+            key_a: a,
+            key_b: b,
+            relative: Pose::from_se3(z).map_err(|e| DpgoError::BadMessage {
+                from: 0,
+                reason: e.to_string(),
+            })?,
+            information: Information::from_matrix(info).map_err(|e| DpgoError::BadMessage {
+                from: 0,
+                reason: e.to_string(),
+            })?,
+            inliers: 0,
+        })
+    };
+    let mut total = 0u64;
+    for (&r, part) in parts {
+        if r == central {
+            continue;
+        }
+        let id = robot_id(r)?;
+        let mut edges = Vec::new();
+        for (a, b, z, info) in &part.odometry {
+            edges.push(edge(*a, *b, z, info)?);
+        }
+        for (a, b, z, info) in closures {
+            // The central robot has its own closures; others are sent once, by the lower
+            // of their two robots.
+            let (ra, rb) = (robot_of(*a)?, robot_of(*b)?);
+            if ra != central && rb != central && ra.min(rb) == r {
+                edges.push(edge(*a, *b, z, info)?);
+            }
+        }
+        for (n, chunk) in edges.chunks(MAX_LOOP_CLOSURES).enumerate() {
+            let m = Message::new(
+                Header {
+                    sender: id.clone(),
+                    epoch: 0,
+                    sequence: n as u64,
+                },
+                Body::LoopClosures(LoopClosures {
+                    closures: chunk.to_vec(),
+                }),
+            );
+            total += m.encoded_len() as u64;
+        }
+        let estimates: Vec<PoseEstimate> = part
+            .poses
+            .iter()
+            .map(|(k, x)| {
+                Ok(PoseEstimate {
+                    key: *k,
+                    value: Estimate::Pose(CompactPose::quantize(x).map_err(|e| quantize(*k, e))?),
+                })
+            })
+            .collect::<Result<_, DpgoError>>()?;
+        for (n, chunk) in estimates.chunks(MAX_POSE_ESTIMATES).enumerate() {
+            let m = Message::new(
+                Header {
+                    sender: robot_id(central)?,
+                    epoch: 0,
+                    sequence: n as u64,
+                },
+                Body::PoseEstimates(PoseEstimates {
+                    optimization: 0,
+                    round: 0,
+                    stage: Stage::Refine,
+                    flags: 0,
+                    anchor: central,
+                    estimates: chunk.to_vec(),
+                }),
+            );
+            total += m.encoded_len() as u64;
+        }
+    }
+    Ok(total)
+}
+
+/// Plays the team of a merged multi-robot graph and compares with the centralized optimum.
+pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, DpgoError> {
+    let start = Instant::now();
+    let (parts, closures) = split(graph)?;
+    let bytes_centralized = centralized_bytes(&parts, &closures)?;
+    // The centralized reference, same gauge: the lowest robot's first pose, at its value.
+    let mut central = graph.clone();
+    let anchor_key = parts
+        .values()
+        .next()
+        .and_then(|p| p.poses.first())
+        .map(|(k, _)| *k)
+        .ok_or(crate::solver::SolveError::Empty)?;
+    for part in parts.values() {
+        for (k, x) in &part.poses {
+            central.add_pose(*k, *x);
+        }
+    }
+    let anchor = central.index_of(anchor_key).unwrap_or_default();
+    SE3::chordal(&mut central, anchor)?;
+    optimize(&mut central, anchor, &SolverOptions::default())?;
+    let centralized_chi2 = central.chi2();
+
+    // The agents.
+    let mut agents: BTreeMap<u8, Agent> = BTreeMap::new();
+    for (&r, part) in &parts {
+        let mut a = Agent::new(r, robot_id(r)?, 1, options.agent.clone());
+        for (k, x) in &part.poses {
+            a.add_pose(*k, *x)?;
+        }
+        for (i, j, z, info) in &part.odometry {
+            a.add_odometry(*i, *j, *z, *info)?;
+        }
+        agents.insert(r, a);
+    }
+    let joined = |r: u8, round: u64| options.join_at.get(&r).is_none_or(|&j| round >= j);
+    let in_range = |r: u8, round: u64| options.outage.get(&r).is_none_or(|o| !o.contains(&round));
+    let mut closures_added = vec![false; closures.len()];
+    let mut draws = Draws(options.seed);
+    let (mut messages, mut bytes, mut dropped, mut refused) = (0u64, 0u64, 0u64, 0u64);
+    let mut iterations = 0;
+    let mut converged = false;
+    let robots: Vec<u8> = agents.keys().copied().collect();
+    for round in 0..options.max_rounds {
+        iterations = round + 1;
+        // Closures appear when both robots have joined (they met).
+        for (c, added) in closures.iter().zip(closures_added.iter_mut()) {
+            let (ra, rb) = (robot_of(c.0)?, robot_of(c.1)?);
+            if !*added && joined(ra, round) && joined(rb, round) {
+                for r in [ra, rb] {
+                    if let Some(a) = agents.get_mut(&r) {
+                        a.add_closure(c.0, c.1, c.2, c.3)?;
+                    }
+                }
+                *added = true;
+            }
+        }
+        for &r in &robots {
+            let neighbors: Vec<u8> = agents[&r].neighbors().collect();
+            for n in &neighbors {
+                let present = joined(*n, round) && in_range(*n, round) && in_range(r, round);
+                if let Some(a) = agents.get_mut(&r) {
+                    a.set_present(*n, present);
+                }
+            }
+        }
+        for &r in &robots {
+            if !joined(r, round) {
+                continue;
+            }
+            let Some(agent) = agents.get_mut(&r) else {
+                continue;
+            };
+            agent.step()?;
+            let neighbors: Vec<u8> = agent.neighbors().collect();
+            for n in neighbors {
+                if !(joined(n, round) && in_range(n, round) && in_range(r, round)) {
+                    continue;
+                }
+                let out = agents.get_mut(&r).map(|a| a.messages_for(n)).transpose()?;
+                for m in out.unwrap_or_default() {
+                    let bytes_m = m.encode().map_err(|e| DpgoError::BadMessage {
+                        from: r,
+                        reason: e.to_string(),
+                    })?;
+                    messages += 1;
+                    bytes += bytes_m.len() as u64;
+                    if draws.next_f64() < options.drop {
+                        dropped += 1;
+                        continue;
+                    }
+                    let decoded = Message::decode(&bytes_m).map_err(|e| DpgoError::BadMessage {
+                        from: r,
+                        reason: e.to_string(),
+                    })?;
+                    if let Some(peer) = agents.get_mut(&n) {
+                        if peer.receive(r, &decoded).is_err() {
+                            refused += 1;
+                        }
+                    }
+                }
+            }
+        }
+        let all_joined = robots.iter().all(|&r| joined(r, round));
+        let outage_over = options.outage.values().all(|o| round >= o.end);
+        if all_joined
+            && outage_over
+            && closures_added.iter().all(|a| *a)
+            && agents
+                .values()
+                .all(|a| a.converged() || a.neighbors().next().is_none())
+        {
+            converged = true;
+            break;
+        }
+    }
+    // The team's estimate against the centralized one, in the centralized frame (the
+    // condensed method fixes the anchor pose at the identity, the centralized solve and
+    // DGS at its initial value: one rigid transform apart, which χ² does not see).
+    let mut distributed = graph.clone();
+    for a in agents.values() {
+        for (k, x) in a.estimate() {
+            if let Some(p) = distributed.index_of(k) {
+                distributed.poses_mut()[p] = *x;
+            }
+        }
+    }
+    let to_central = central.poses()[anchor].compose(&distributed.poses()[anchor].inverse());
+    let mut sq = 0.0;
+    let mut poses = 0usize;
+    for a in agents.values() {
+        for (k, _) in a.estimate() {
+            let Some(p) = distributed.index_of(k) else {
+                continue;
+            };
+            let x = to_central.compose(&distributed.poses()[p]);
+            let c = central.poses()[p];
+            sq += (x.translation.vector - c.translation.vector).norm_squared();
+            poses += 1;
+        }
+    }
+    let distributed_chi2 = distributed.chi2();
+    let stats: Vec<_> = agents.values().map(|a| a.stats()).collect();
+    let separators = {
+        let mut s: Vec<u64> = closures.iter().flat_map(|c| [c.0, c.1]).collect();
+        s.sort_unstable();
+        s.dedup();
+        s.len()
+    };
+    Ok(RunReport {
+        method: options.agent.method,
+        robots: agents.len(),
+        iterations,
+        messages,
+        bytes,
+        bytes_centralized,
+        bytes_ratio: bytes as f64 / bytes_centralized.max(1) as f64,
+        centralized_chi2,
+        distributed_chi2,
+        chi2_gap: (distributed_chi2 - centralized_chi2) / centralized_chi2.max(f64::MIN_POSITIVE),
+        ate_to_centralized: (sq / poses.max(1) as f64).sqrt(),
+        time_s: start.elapsed().as_secs_f64(),
+        converged,
+        dropped,
+        resent: stats.iter().map(|s| s.resent).sum(),
+        refused: refused + stats.iter().map(|s| s.refused).sum::<u64>(),
+        reinitializations: stats.iter().map(|s| s.reinitializations).sum(),
+        separators,
+        poses,
+    })
+}
