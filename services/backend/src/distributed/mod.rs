@@ -293,6 +293,9 @@ pub struct Agent {
     own_graph_dirty: bool,
     own_graph_counter: u64,
     solved_with: BTreeMap<u8, u64>,
+    /// (neighbour, origin) → step since which the neighbour lacks the origin's graph
+    /// while another robot was expected to forward it (see `graph_messages_for`).
+    graph_due_since: BTreeMap<(u8, u8), u64>,
     stats: AgentStats,
 }
 
@@ -329,6 +332,7 @@ impl Agent {
             own_graph_dirty: true,
             own_graph_counter: 0,
             solved_with: BTreeMap::new(),
+            graph_due_since: BTreeMap::new(),
             stats: AgentStats::default(),
         }
     }
@@ -1246,6 +1250,7 @@ impl Agent {
 
     fn condensed_converged(&self) -> bool {
         let versions: BTreeMap<u8, u64> = self.graphs.iter().map(|(o, (v, _))| (*o, *v)).collect();
+        let partners = self.partners();
         !self.own_graph_dirty
             && versions == self.solved_with
             && self.neighbors.iter().all(|(&id, n)| {
@@ -1255,14 +1260,79 @@ impl Agent {
                         && self
                             .graphs
                             .iter()
-                            .filter(|(o, _)| **o != id)
+                            .filter(|(o, _)| {
+                                **o != id && designated(self.robot, id, **o, &partners)
+                            })
                             .all(|(o, (v, _))| n.graphs_held.get(o).is_some_and(|h| h >= v)))
             })
+    }
+
+    /// Robot pairs that share closures, from every graph held and our own closures.
+    fn partners(&self) -> BTreeMap<u8, BTreeSet<u8>> {
+        let mut p: BTreeMap<u8, BTreeSet<u8>> = BTreeMap::new();
+        let mut link = |a: u8, b: u8| {
+            p.entry(a).or_default().insert(b);
+            p.entry(b).or_default().insert(a);
+        };
+        for (_, edges) in self.graphs.values() {
+            for e in edges {
+                if let (Some(a), Some(b)) = (key::robot(e.a), key::robot(e.b)) {
+                    if a != b {
+                        link(a, b);
+                    }
+                }
+            }
+        }
+        for c in &self.closures {
+            if let Some(o) = key::robot(c.other) {
+                link(self.robot, o);
+            }
+        }
+        p
+    }
+
+    /// Whether this robot is the one to forward `origin`'s graph to `neighbor`: not if
+    /// the origin shares closures with it (it sends its own), nor if a lower robot that
+    /// shares closures with both does; unless the neighbour has lacked it for `patience`
+    /// steps (that robot may be out of range).
+    fn forwards(
+        &mut self,
+        neighbor: u8,
+        origin: u8,
+        partners: &BTreeMap<u8, BTreeSet<u8>>,
+    ) -> bool {
+        if designated(self.robot, neighbor, origin, partners) {
+            return true;
+        }
+        let step = self.stats.steps;
+        let since = *self
+            .graph_due_since
+            .entry((neighbor, origin))
+            .or_insert(step);
+        // Three times the patience: the designated robot may just be slower than us.
+        step.saturating_sub(since) > 3 * self.options.patience
     }
 
     fn graph_messages_for(&mut self, neighbor: u8) -> Result<Vec<Message>, DpgoError> {
         let step = self.stats.steps;
         let resend_after = self.options.resend_after;
+        let partners = self.partners();
+        let due: Vec<u8> = {
+            let held = self.neighbors.get(&neighbor).map(|n| &n.graphs_held);
+            self.graphs
+                .iter()
+                .filter(|(o, (v, _))| {
+                    **o != neighbor && held.and_then(|h| h.get(o)).is_none_or(|h| h < v)
+                })
+                .map(|(o, _)| *o)
+                .collect()
+        };
+        let mut allowed = BTreeSet::new();
+        for origin in due {
+            if self.forwards(neighbor, origin, &partners) {
+                allowed.insert(origin);
+            }
+        }
         let mut out = Vec::new();
         let Some(n) = self.neighbors.get_mut(&neighbor) else {
             return Ok(out);
@@ -1296,7 +1366,7 @@ impl Agent {
             self.stats.resent += 1;
         }
         for (&origin, (version, edges)) in &self.graphs {
-            if origin == neighbor {
+            if origin == neighbor || !allowed.contains(&origin) {
                 continue;
             }
             let held = n.graphs_held.get(&origin).copied();
@@ -1459,6 +1529,7 @@ impl Agent {
                 if let Some((_, origin, version)) = n.graphs_in_flight.remove(&s) {
                     let held = n.graphs_held.entry(origin).or_insert(0);
                     *held = (*held).max(version);
+                    self.graph_due_since.remove(&(neighbor, origin));
                 }
             } else if highest.is_some_and(|hi| s < hi) {
                 n.graphs_in_flight.remove(&s);
@@ -1467,6 +1538,26 @@ impl Agent {
         }
         Ok(true)
     }
+}
+
+/// Whether `me` is the robot that sends `origin`'s graph to `neighbor`: the origin itself;
+/// nobody else if the origin shares closures with the neighbour; else the lowest robot
+/// sharing closures with both (or any holder when no such robot is known: more hops).
+fn designated(me: u8, neighbor: u8, origin: u8, partners: &BTreeMap<u8, BTreeSet<u8>>) -> bool {
+    if origin == me {
+        return true;
+    }
+    let empty = BTreeSet::new();
+    let of = |r: u8| partners.get(&r).unwrap_or(&empty);
+    if of(origin).contains(&neighbor) {
+        return false;
+    }
+    of(origin)
+        .intersection(of(neighbor))
+        .copied()
+        .filter(|r| *r != neighbor && *r != origin)
+        .min()
+        .is_none_or(|r| r == me)
 }
 
 fn ack_message(
