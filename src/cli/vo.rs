@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use doorslam_frontend::run::{endpoint_drift, kitti_text, quantile, run_dataset};
+use doorslam_frontend::run::{edge_nees, endpoint_drift, kitti_text, quantile, run_dataset};
 use doorslam_frontend::{Detector, VoConfig};
 
 #[derive(Debug, Args)]
@@ -94,6 +94,14 @@ pub fn run(a: VoArgs) -> Result<()> {
             "detector": format!("{detector:?}").to_lowercase(),
             "threads": threads,
         });
+        if let Some(truth) = &dataset.truth {
+            let index: Vec<usize> = dataset.frames.iter().map(|f| f.index).collect();
+            let nees = edge_nees(&report.keyframes, &report.edges, &index, truth);
+            if !nees.is_empty() {
+                v["edge_nees_mean"] = (nees.iter().sum::<f64>() / nees.len() as f64).into();
+                v["edge_nees_median"] = quantile(&nees, 0.5).unwrap_or(0.0).into();
+            }
+        }
         if let Some(d) = drift {
             v["distance_m"] = d.distance_m.into();
             v["endpoint_error_m"] = d.endpoint_error_m.into();

@@ -194,3 +194,33 @@ pub fn endpoint_drift(estimate: &[SE3], truth: &[SE3]) -> Option<Drift> {
         percent: 100.0 * endpoint_error_m / distance_m,
     })
 }
+
+/// Normalized estimation error squared of every odometry edge against ground truth:
+/// `rᵀ Ω r` with `r = Log(Z_true⁻¹ · Z)`. Its mean is 6 when the information matrices are
+/// the inverse covariances of the actual errors; above 6 they are overconfident.
+/// `truth[k]` is the true pose of the frame with index `frame_index[k]`.
+pub fn edge_nees(
+    keyframes: &[Keyframe],
+    edges: &[OdometryEdge],
+    frame_index: &[usize],
+    truth: &[SE3],
+) -> Vec<f64> {
+    use doorslam_geometry::LieGroup;
+    let position: std::collections::HashMap<u64, usize> = frame_index
+        .iter()
+        .enumerate()
+        .map(|(pos, &index)| (index as u64, pos))
+        .collect();
+    let truth_of = |id: u64| {
+        let kf = keyframes.iter().find(|k| k.id == id)?;
+        truth.get(*position.get(&kf.frame)?)
+    };
+    edges
+        .iter()
+        .filter_map(|e| {
+            let (a, b) = (truth_of(e.from)?, truth_of(e.to)?);
+            let r = ((a.inverse() * b).inverse() * e.relative).log();
+            Some((r.transpose() * e.information * r)[0])
+        })
+        .collect()
+}
