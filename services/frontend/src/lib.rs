@@ -8,6 +8,7 @@
 //! - [`refine`]: Gauss-Newton on the stereo reprojection error and its information matrix;
 //! - [`vo`]: the odometry ([`StereoVo`]): tracking, keyframes, lost / re-init / segments;
 //! - [`keyframe`]: its outputs, the contract for downstream services;
+//! - [`verify`]: geometric verification of loop-closure candidates (PnP-RANSAC);
 //! - [`run`]: the odometry over a dataset folder, with timing and drift.
 
 pub mod config;
@@ -16,12 +17,14 @@ pub mod keyframe;
 pub mod refine;
 pub mod run;
 pub mod stereo;
+pub mod verify;
 pub mod vo;
 
 pub use config::{ConfigError, Detector, VoConfig};
 pub use features::{detect_gftt, detect_orb, load_gray, FrontendError, OrbFeatures};
 pub use keyframe::{Feature, Keyframe, OdometryEdge, SegmentLink};
 pub use stereo::Gray;
+pub use verify::{verify, Rejection, Verified, VerifyConfig};
 pub use vo::{FrameResult, LostReason, StereoVo, TrackState, VoStats};
 
 /// Re-exported so callers use the exact OpenCV binding this crate was built against.

@@ -605,20 +605,34 @@ fn pnp_ransac(
     calib: &StereoCalibration,
     config: &VoConfig,
 ) -> Result<Option<(SE3, Vec<usize>)>, FrontendError> {
-    let object: Vector<Point3f> = pairs
+    let points: Vec<Vector3<f64>> = pairs.iter().map(|&(k, _)| kf.points[k]).collect();
+    let pixels: Vec<[f32; 2]> = pairs
         .iter()
-        .map(|&(k, _)| {
-            let p = kf.points[k];
-            Point3f::new(p.x as f32, p.y as f32, p.z as f32)
-        })
+        .map(|&(_, c)| features.features[c].pixel)
         .collect();
-    let image: Vector<Point2f> = pairs
+    pnp_from_points(
+        &points,
+        &pixels,
+        calib,
+        config.ransac_iterations,
+        config.ransac_threshold_px,
+    )
+}
+
+/// solvePnPRansac of 3-D points (in a reference camera frame) against the pixels where a
+/// second camera sees them: that camera's pose in the reference frame, and the inliers.
+pub(crate) fn pnp_from_points(
+    points: &[Vector3<f64>],
+    pixels: &[[f32; 2]],
+    calib: &StereoCalibration,
+    iterations: i32,
+    threshold_px: f64,
+) -> Result<Option<(SE3, Vec<usize>)>, FrontendError> {
+    let object: Vector<Point3f> = points
         .iter()
-        .map(|&(_, c)| {
-            let p = features.features[c].pixel;
-            Point2f::new(p[0], p[1])
-        })
+        .map(|p| Point3f::new(p.x as f32, p.y as f32, p.z as f32))
         .collect();
+    let image: Vector<Point2f> = pixels.iter().map(|p| Point2f::new(p[0], p[1])).collect();
     let k = Mat::from_slice_2d(&[
         [calib.fx, 0.0, calib.cx],
         [0.0, calib.fy, calib.cy],
@@ -636,8 +650,8 @@ fn pnp_ransac(
         &mut rvec,
         &mut tvec,
         false,
-        config.ransac_iterations,
-        config.ransac_threshold_px as f32,
+        iterations,
+        threshold_px as f32,
         0.999,
         &mut inliers,
         opencv::calib3d::SOLVEPNP_AP3P,
@@ -665,7 +679,7 @@ fn pnp_ransac(
     let inliers = inliers
         .iter()
         .filter_map(|i| usize::try_from(i).ok())
-        .filter(|&i| i < pairs.len())
+        .filter(|&i| i < points.len())
         .collect();
     Ok(Some((camera_from_keyframe.inverse(), inliers)))
 }
