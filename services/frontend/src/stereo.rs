@@ -410,3 +410,78 @@ pub fn triangulation_jacobian(calib: &StereoCalibration, u: f64, v: f64, d: f64)
         dz,
     )
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A smooth random texture, and its copy shifted left by `disparity` px (bilinear), as a
+    /// rectified right image of a fronto-parallel plane.
+    fn pair(width: usize, height: usize, disparity: f64) -> (Vec<u8>, Vec<u8>) {
+        let texture = |x: f64, y: f64| {
+            128.0
+                + 50.0 * (0.31 * x + 0.07 * y).sin()
+                + 40.0 * (0.13 * x - 0.23 * y).cos()
+                + 30.0 * (0.47 * x * 0.5 + 0.41 * y).sin()
+        };
+        let mut left = vec![0u8; width * height];
+        let mut right = vec![0u8; width * height];
+        for y in 0..height {
+            for x in 0..width {
+                let (xf, yf) = (x as f64, y as f64);
+                left[y * width + x] = texture(xf, yf).round() as u8;
+                right[y * width + x] = texture(xf + disparity, yf).round() as u8;
+            }
+        }
+        (left, right)
+    }
+
+    #[test]
+    fn row_matching_recovers_a_sub_pixel_disparity() {
+        let (w, h) = (200, 60);
+        let config = VoConfig::default();
+        for truth in [5.0, 12.3, 30.7] {
+            let (l, r) = pair(w, h, truth);
+            let (left, right) = (Gray::new(w, h, &l).unwrap(), Gray::new(w, h, &r).unwrap());
+            // Sub-pixel keypoints too: the disparity belongs to the place, not to the rounding.
+            for x in [60.4f32, 100.0, 149.6] {
+                let d = match_along_row(&left, &right, [x, 30.0], &config).unwrap();
+                assert!(
+                    (d as f64 - truth).abs() < 0.2,
+                    "disparity {d} at x {x}, truth {truth}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn flat_images_and_borders_give_no_disparity() {
+        let (w, h) = (100, 40);
+        let flat = vec![90u8; w * h];
+        let img = Gray::new(w, h, &flat).unwrap();
+        let config = VoConfig::default();
+        // Every candidate costs the same: ambiguous, refused.
+        assert_eq!(match_along_row(&img, &img, [50.0, 20.0], &config), None);
+        let (l, r) = pair(w, h, 8.0);
+        let (left, right) = (Gray::new(w, h, &l).unwrap(), Gray::new(w, h, &r).unwrap());
+        assert_eq!(match_along_row(&left, &right, [1.0, 20.0], &config), None);
+        assert_eq!(match_along_row(&left, &right, [50.0, 39.0], &config), None);
+        assert!(Gray::new(w, h, &l[1..]).is_err());
+    }
+
+    #[test]
+    fn depth_uncertainty_grows_with_depth_squared() {
+        let calib = StereoCalibration {
+            fx: 500.0,
+            fy: 500.0,
+            cx: 320.0,
+            cy: 240.0,
+            baseline_m: 0.1,
+        };
+        let p = triangulate(&calib, 320.0, 240.0, 10.0);
+        assert!((p.z - 5.0).abs() < 1e-12);
+        let near = triangulation_jacobian(&calib, 320.0, 240.0, 20.0)[(2, 2)].abs();
+        let far = triangulation_jacobian(&calib, 320.0, 240.0, 10.0)[(2, 2)].abs();
+        assert!((far / near - 4.0).abs() < 1e-9, "{far} / {near}");
+    }
+}
