@@ -252,3 +252,46 @@ fn a_bad_image_size_is_an_error_naming_it() {
     let err = StereoVo::new(f.calib, bad).unwrap_err();
     assert!(err.to_string().contains("pixel_sigma_px"), "{err}");
 }
+
+#[test]
+fn a_jump_to_another_place_is_lost_or_right_never_a_garbage_pose() {
+    // Frames 0..10, then frame 70 presented as if it came 0.1 s after frame 9 (a camera
+    // that was swapped, or frames that skipped without their stamps saying so).
+    let f = flight();
+    let mut vo = StereoVo::new(f.calib, VoConfig::default()).unwrap();
+    let mut results = Vec::new();
+    for (n, k) in (0..10).chain(70..75).enumerate() {
+        let left = Gray::new(f.width, f.height, &f.left[k]).unwrap();
+        let right = Gray::new(f.width, f.height, &f.right[k]).unwrap();
+        results.push((k, vo.process(k as u64, stamp(n), &left, &right).unwrap()));
+    }
+    let first = results[0].1.pose.unwrap();
+    let (_, jump) = &results[10];
+    match jump.pose {
+        None => {
+            assert_eq!(jump.state, TrackState::Lost);
+            assert!(
+                matches!(
+                    jump.lost_reason,
+                    Some(LostReason::TrackingFailed { .. } | LostReason::Implausible { .. })
+                ),
+                "{:?}",
+                jump.lost_reason
+            );
+            // The next frame starts a new segment.
+            assert_eq!(results[11].1.state, TrackState::Initialized);
+            assert_eq!(results[11].1.segment, 1);
+        }
+        Some(pose) => {
+            // Tracked across the jump: then it must be the true pose.
+            let est = first.inverse() * pose;
+            let truth = f.truth[0].inverse() * f.truth[70];
+            let err = (est.translation.vector - truth.translation.vector).norm();
+            assert!(
+                err < 0.5,
+                "a pose {err:.2} m off was emitted after the jump"
+            );
+        }
+    }
+    eprintln!("jump: {:?} ({:?})", jump.state, jump.lost_reason);
+}
