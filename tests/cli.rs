@@ -15,8 +15,8 @@ fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
-const SUBCOMMANDS: [&str; 10] = [
-    "service", "up", "pgo", "pcm", "dpgo", "eval", "sim", "replay", "bw", "demo",
+const SUBCOMMANDS: [&str; 11] = [
+    "service", "up", "pgo", "pcm", "dpgo", "eval", "sim", "replay", "bw", "demo", "vo",
 ];
 
 #[test]
@@ -564,5 +564,51 @@ fn up_restarts_a_failing_service_up_to_the_start_limit() {
     assert!(
         err.contains("camera failed (exit status: 1): stopping the robot"),
         "{err}"
+    );
+}
+
+#[test]
+fn vo_on_the_kitti_06_clip_prints_the_documented_fields_and_a_file_eval_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    let est = dir.path().join("est.txt");
+    let clip = data("stereo/kitti06_0000-0050");
+    let out = doorslam(&["vo", &clip, "--out", est.to_str().unwrap(), "--json"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    for field in [
+        "frames",
+        "keyframes",
+        "lost",
+        "segments",
+        "time_s",
+        "ms_per_frame_median",
+        "ms_per_frame_p90",
+    ] {
+        assert!(v[field].is_number(), "{field} missing: {v}");
+    }
+    assert_eq!(v["frames"], 51);
+    assert_eq!(v["lost"], 0);
+    assert_eq!(v["segments"], 1);
+    assert!(v["drift_percent"].as_f64().unwrap() < 2.0, "{v}");
+    let text = std::fs::read_to_string(&est).unwrap();
+    assert_eq!(text.lines().count(), 51);
+    let gt = format!("{clip}/poses.txt");
+    let out = doorslam(&["eval", "ate", est.to_str().unwrap(), &gt, "--json"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let ate: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(ate["ate_rmse"].as_f64().unwrap() < 0.5, "{ate}");
+}
+
+#[test]
+fn vo_refuses_unrectified_euroc_and_missing_folders_by_name() {
+    let out = doorslam(&["vo", &data("stereo/euroc_v101_micro"), "--json"]);
+    assert!(!out.status.success());
+    assert!(stderr(&out).contains("not rectified"), "{}", stderr(&out));
+    let out = doorslam(&["vo", "/nonexistent/flight"]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("/nonexistent/flight"),
+        "{}",
+        stderr(&out)
     );
 }

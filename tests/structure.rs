@@ -48,14 +48,31 @@ fn dependency_lines(manifest: &str) -> Vec<String> {
     lines
 }
 
+/// The lines of the sections that ship in a build: [dependencies], [build-dependencies] and
+/// their target-specific forms, not [dev-dependencies] (tests may render with the simulator).
+fn shipped_dependency_lines(manifest: &str) -> Vec<String> {
+    let mut in_deps = false;
+    let mut lines = Vec::new();
+    for line in manifest.lines().map(str::trim) {
+        if line.starts_with('[') {
+            in_deps = line.ends_with("dependencies]") && !line.ends_with("dev-dependencies]");
+        } else if in_deps && !line.is_empty() && !line.starts_with('#') {
+            lines.push(line.to_string());
+        }
+    }
+    lines
+}
+
 #[test]
 fn services_never_depend_on_the_simulator() {
+    // A service's tests may use hil (rendered flights with ground truth) as a
+    // dev-dependency; the service itself never links it.
     for m in member_manifests() {
         if m.starts_with("hil") {
             continue;
         }
         let text = std::fs::read_to_string(&m).unwrap();
-        for line in dependency_lines(&text) {
+        for line in shipped_dependency_lines(&text) {
             assert!(
                 !line.starts_with("doorslam-hil"),
                 "{}: {line}: services and ipc-schema must not depend on hil",
@@ -63,6 +80,13 @@ fn services_never_depend_on_the_simulator() {
             );
         }
     }
+    assert!(
+        shipped_dependency_lines("[dev-dependencies]\ndoorslam-hil.workspace = true\n").is_empty()
+    );
+    assert_eq!(
+        shipped_dependency_lines("[dependencies]\ndoorslam-hil.workspace = true\n"),
+        ["doorslam-hil.workspace = true"]
+    );
 }
 
 #[test]

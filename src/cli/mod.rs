@@ -11,6 +11,7 @@ mod replay;
 mod service;
 pub(crate) mod sim;
 mod up;
+mod vo;
 
 use std::process::ExitCode;
 
@@ -41,6 +42,8 @@ pub enum Command {
     Eval(eval::EvalArgs),
     /// Simulate worlds, flights and multi-robot pose graphs.
     Sim(sim::SimArgs),
+    /// Stereo visual odometry over a KITTI-layout folder: every frame's pose, timing, drift.
+    Vo(vo::VoArgs),
     /// Replay a dataset (KITTI / EuRoC layout) into the on-robot pipeline.
     Replay(replay::ReplayArgs),
     /// Measure what each inter-robot message kind costs in bytes.
@@ -72,6 +75,7 @@ pub fn main() -> ExitCode {
         Command::Dpgo(args) => dpgo::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Sim(args) => sim::run(args),
+        Command::Vo(args) => vo::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Bw(args) => pending::fail("bw", "the team-link issue (next wave)", &args),
         Command::Demo(args) => demo::run(args),

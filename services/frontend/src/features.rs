@@ -19,6 +19,14 @@ pub enum FrontendError {
     },
     #[error("ORB descriptors are {cols} bytes wide, expected 32")]
     DescriptorWidth { cols: i32 },
+    #[error("image of {width}x{height} pixels has {bytes} bytes (8-bit grayscale expected, both images of a pair the same size)")]
+    ImageSize {
+        width: usize,
+        height: usize,
+        bytes: usize,
+    },
+    #[error(transparent)]
+    Config(#[from] crate::config::ConfigError),
 }
 
 fn cv(op: &'static str) -> impl FnOnce(opencv::Error) -> FrontendError {

@@ -3,12 +3,29 @@
 //! Stereo visual odometry with OpenCV: features, stereo depth, tracking, keyframes, and
 //! PnP-RANSAC geometric verification of loop-closure candidates (paper §III-A, §III-C).
 //!
-//! Landed so far: [`features`], image loading and GFTT/ORB feature detection with
-//! 32-byte ORB descriptors, the inputs of every later stage.
+//! - [`features`]: image loading, GFTT/ORB detection with 32-byte ORB descriptors;
+//! - [`stereo`]: per-frame features with sub-pixel row disparities and 3-D points;
+//! - [`refine`]: Gauss-Newton on the stereo reprojection error and its information matrix;
+//! - [`vo`]: the odometry ([`StereoVo`]): tracking, keyframes, lost / re-init / segments;
+//! - [`keyframe`]: its outputs, the contract for downstream services;
+//! - [`verify`]: geometric verification of loop-closure candidates (PnP-RANSAC);
+//! - [`run`]: the odometry over a dataset folder, with timing and drift.
 
+pub mod config;
 pub mod features;
+pub mod keyframe;
+pub mod refine;
+pub mod run;
+pub mod stereo;
+pub mod verify;
+pub mod vo;
 
+pub use config::{ConfigError, Detector, VoConfig};
 pub use features::{detect_gftt, detect_orb, load_gray, FrontendError, OrbFeatures};
+pub use keyframe::{Feature, Keyframe, OdometryEdge, SegmentLink};
+pub use stereo::Gray;
+pub use verify::{verify, Rejection, Verified, VerifyConfig};
+pub use vo::{FrameResult, LostReason, StereoVo, TrackState, VoStats};
 
 /// Re-exported so callers use the exact OpenCV binding this crate was built against.
 pub use opencv;

@@ -13,8 +13,8 @@
 //! differences, including the small-angle branches and angles near π.
 
 use nalgebra::{
-    Isometry2, Isometry3, Matrix3, Matrix6, Translation2, Translation3, UnitComplex, Vector3,
-    Vector6,
+    Isometry2, Isometry3, Matrix3, Matrix3x6, Matrix6, Translation2, Translation3, UnitComplex,
+    Vector3, Vector6,
 };
 
 use crate::so3::{hat, SMALL_ANGLE, SO3};
@@ -30,6 +30,19 @@ pub type SE2 = Isometry2<f64>;
 pub type Tangent = Vector6<f64>;
 /// Square matrix on the tangent space, padded to 6×6.
 pub type TangentMatrix = Matrix6<f64>;
+
+/// How a point seen from a pose moves when the pose is perturbed: for `p = X⁻¹ · x` (a fixed
+/// point `x` expressed in the frame of `X`), the Jacobian of `(X · Exp(δ))⁻¹ · x` at `δ = 0`,
+/// rotation first: `[ [p]ₓ | −I ]`, since `Exp(−δ) · p ≈ p − φ × p − ρ`. Pose refinement
+/// of a camera `X` against fixed 3-D points (visual odometry, PnP) chains this with the
+/// projection's Jacobian.
+pub fn inverse_action_jacobian(p: &Vector3<f64>) -> Matrix3x6<f64> {
+    let mut j = Matrix3x6::zeros();
+    j.fixed_view_mut::<3, 3>(0, 0).copy_from(&hat(p));
+    j.fixed_view_mut::<3, 3>(0, 3)
+        .copy_from(&(-Matrix3::identity()));
+    j
+}
 
 /// A matrix Lie group used as a pose.
 pub trait LieGroup: Copy + Clone + std::fmt::Debug + PartialEq + Send + Sync + 'static {

@@ -122,3 +122,24 @@ fn dimensions_and_identity() {
         Tangent::zeros()
     );
 }
+
+#[test]
+fn inverse_action_jacobian_matches_finite_differences() {
+    use doorslam_geometry::inverse_action_jacobian;
+    let x = Isometry3::new(Vector3::new(0.3, -1.2, 2.0), Vector3::new(0.4, -0.2, 0.9));
+    let world = nalgebra::Point3::new(1.5, -0.7, 6.0);
+    let p = (x.inverse() * world).coords;
+    let analytic = inverse_action_jacobian(&p);
+    for k in 0..6 {
+        let mut d = Tangent::zeros();
+        d[k] = H;
+        let plus = (x.oplus(&d).inverse() * world).coords;
+        let minus = (x.oplus(&(-d)).inverse() * world).coords;
+        let column = (plus - minus) / (2.0 * H);
+        assert!(
+            (column - analytic.column(k)).amax() < 1e-6,
+            "column {k}: numeric {column:?} vs analytic {:?}",
+            analytic.column(k)
+        );
+    }
+}

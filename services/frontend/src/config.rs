@@ -1,0 +1,260 @@
+//! Tuning of the stereo visual odometry, with serde defaults (a `[frontend]` table of
+//! robot.toml may set any subset of the fields).
+
+use serde::{Deserialize, Serialize};
+
+/// Which detector finds the left image's keypoints; descriptors are always 32-byte ORB.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Detector {
+    /// Shi-Tomasi corners refined to sub-pixel (the paper's GFTT+ORB choice).
+    #[default]
+    Gftt,
+    /// FAST-9 corners, strongest first.
+    Fast,
+    /// ORB's own oriented FAST on an image pyramid (scale-invariant, slower).
+    Orb,
+}
+
+/// Every threshold of [`crate::StereoVo`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct VoConfig {
+    pub detector: Detector,
+    /// Keypoints detected per left image.
+    pub max_features: usize,
+    /// Smallest distance between two GFTT corners (px).
+    pub min_feature_distance_px: f64,
+    /// GFTT quality level (fraction of the strongest corner's score).
+    pub gftt_quality: f64,
+    /// FAST threshold (intensity difference).
+    pub fast_threshold: i32,
+    /// Half size of the stereo block-matching window (px): (2r+1)² pixels.
+    pub stereo_window_radius: usize,
+    /// Largest disparity searched along the row (px).
+    pub max_disparity_px: usize,
+    /// Smallest accepted disparity (px); further points carry almost no depth.
+    pub min_disparity_px: f64,
+    /// The best block cost must be below this fraction of the best one away from it.
+    pub stereo_uniqueness: f64,
+    /// Mean absolute intensity difference above which a block match is refused.
+    pub stereo_max_mean_abs_diff: f64,
+    /// Standard deviation of a feature's pixel position (px), both axes.
+    pub pixel_sigma_px: f64,
+    /// Standard deviation of a sub-pixel disparity (px).
+    pub disparity_sigma_px: f64,
+    /// Search radius around the motion prior's prediction (px); tried twice as
+    /// `search_radius_px` then `wide_search_radius_px` when the first finds too few matches.
+    pub search_radius_px: f64,
+    pub wide_search_radius_px: f64,
+    /// Largest Hamming distance of an accepted descriptor match (of 256 bits).
+    pub max_hamming: u32,
+    /// Best match must be below this fraction of the second best in the window.
+    pub match_ratio: f64,
+    /// RANSAC reprojection threshold (px) and iterations of solvePnPRansac.
+    pub ransac_threshold_px: f64,
+    pub ransac_iterations: i32,
+    /// Fewest inliers of a tracked frame; below it the frame is lost.
+    pub min_inliers: usize,
+    /// Fewest 3-D points to start a segment or make a keyframe.
+    pub min_keyframe_points: usize,
+    /// χ² (3 dof) above which a refined correspondence is an outlier.
+    pub outlier_chi2: f64,
+    /// A new keyframe when the tracked fraction of the keyframe's points falls below this...
+    pub keyframe_min_tracked_fraction: f64,
+    /// ... or the camera moved further than this from the keyframe (m) ...
+    pub keyframe_max_distance_m: f64,
+    /// ... or turned more than this (degrees) ...
+    pub keyframe_max_rotation_deg: f64,
+    /// ... or the median image motion of the tracked points exceeds this (px).
+    pub keyframe_max_parallax_px: f64,
+    /// Images darker/brighter than this mean, or flatter than this standard deviation, are
+    /// unusable (blank, over-exposed, lens cap).
+    pub min_mean_intensity: f64,
+    pub max_mean_intensity: f64,
+    pub min_intensity_std: f64,
+    /// A gap between frame stamps longer than this (s) loses the track: the motion prior
+    /// means nothing after the camera stopped or frames were dropped for that long.
+    pub max_frame_gap_s: f64,
+    /// Implausible speed (m/s): a faster refined motion is refused, never emitted.
+    pub max_speed_mps: f64,
+    /// The weak prior linking a new segment to the previous one: standard deviations of
+    /// its rotation (rad) and translation (m) per second lost (and at least one second).
+    pub segment_prior_rotation_sigma: f64,
+    pub segment_prior_translation_sigma_m: f64,
+    /// OpenCV worker threads (1: the robot's budget is per core).
+    pub threads: usize,
+}
+
+impl Default for VoConfig {
+    fn default() -> Self {
+        Self {
+            detector: Detector::Gftt,
+            max_features: 1000,
+            min_feature_distance_px: 8.0,
+            gftt_quality: 0.01,
+            fast_threshold: 20,
+            stereo_window_radius: 3,
+            max_disparity_px: 128,
+            min_disparity_px: 1.0,
+            stereo_uniqueness: 0.9,
+            stereo_max_mean_abs_diff: 25.0,
+            pixel_sigma_px: 0.5,
+            disparity_sigma_px: 0.5,
+            search_radius_px: 20.0,
+            wide_search_radius_px: 80.0,
+            max_hamming: 64,
+            match_ratio: 0.9,
+            ransac_threshold_px: 2.0,
+            ransac_iterations: 100,
+            min_inliers: 15,
+            min_keyframe_points: 40,
+            outlier_chi2: 11.34,
+            keyframe_min_tracked_fraction: 0.5,
+            keyframe_max_distance_m: 3.0,
+            keyframe_max_rotation_deg: 10.0,
+            keyframe_max_parallax_px: 60.0,
+            min_mean_intensity: 10.0,
+            max_mean_intensity: 245.0,
+            min_intensity_std: 4.0,
+            max_frame_gap_s: 0.5,
+            max_speed_mps: 60.0,
+            segment_prior_rotation_sigma: 0.2,
+            segment_prior_translation_sigma_m: 2.0,
+            threads: 1,
+        }
+    }
+}
+
+/// A configuration value outside its range; names the field.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("frontend config: {field} = {value}: {reason}")]
+pub struct ConfigError {
+    pub field: &'static str,
+    pub value: String,
+    pub reason: &'static str,
+}
+
+impl VoConfig {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |field, value: &dyn ToString, reason| ConfigError {
+            field,
+            value: value.to_string(),
+            reason,
+        };
+        let positive = [
+            ("min_feature_distance_px", self.min_feature_distance_px),
+            ("gftt_quality", self.gftt_quality),
+            ("min_disparity_px", self.min_disparity_px),
+            ("stereo_uniqueness", self.stereo_uniqueness),
+            ("stereo_max_mean_abs_diff", self.stereo_max_mean_abs_diff),
+            ("pixel_sigma_px", self.pixel_sigma_px),
+            ("disparity_sigma_px", self.disparity_sigma_px),
+            ("search_radius_px", self.search_radius_px),
+            ("wide_search_radius_px", self.wide_search_radius_px),
+            ("match_ratio", self.match_ratio),
+            ("ransac_threshold_px", self.ransac_threshold_px),
+            ("outlier_chi2", self.outlier_chi2),
+            ("keyframe_max_distance_m", self.keyframe_max_distance_m),
+            ("keyframe_max_rotation_deg", self.keyframe_max_rotation_deg),
+            ("keyframe_max_parallax_px", self.keyframe_max_parallax_px),
+            ("max_frame_gap_s", self.max_frame_gap_s),
+            ("max_speed_mps", self.max_speed_mps),
+            (
+                "segment_prior_rotation_sigma",
+                self.segment_prior_rotation_sigma,
+            ),
+            (
+                "segment_prior_translation_sigma_m",
+                self.segment_prior_translation_sigma_m,
+            ),
+        ];
+        for (field, value) in positive {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(bad(field, &value, "must be finite and > 0"));
+            }
+        }
+        for (field, value) in [
+            ("stereo_uniqueness", self.stereo_uniqueness),
+            ("match_ratio", self.match_ratio),
+            (
+                "keyframe_min_tracked_fraction",
+                self.keyframe_min_tracked_fraction,
+            ),
+        ] {
+            if !(0.0..=1.0).contains(&value) {
+                return Err(bad(field, &value, "must be in [0, 1]"));
+            }
+        }
+        if !(10..=20_000).contains(&self.max_features) {
+            return Err(bad(
+                "max_features",
+                &self.max_features,
+                "must be 10..=20000",
+            ));
+        }
+        if !(1..=10).contains(&self.stereo_window_radius) {
+            return Err(bad(
+                "stereo_window_radius",
+                &self.stereo_window_radius,
+                "must be 1..=10",
+            ));
+        }
+        if !(4..=512).contains(&self.max_disparity_px) {
+            return Err(bad(
+                "max_disparity_px",
+                &self.max_disparity_px,
+                "must be 4..=512",
+            ));
+        }
+        if self.max_hamming > 256 {
+            return Err(bad("max_hamming", &self.max_hamming, "must be <= 256"));
+        }
+        if !(1..=100_000).contains(&self.ransac_iterations) {
+            return Err(bad(
+                "ransac_iterations",
+                &self.ransac_iterations,
+                "must be 1..=100000",
+            ));
+        }
+        if self.min_inliers < 6 {
+            return Err(bad("min_inliers", &self.min_inliers, "must be >= 6"));
+        }
+        if self.min_keyframe_points < self.min_inliers {
+            return Err(bad(
+                "min_keyframe_points",
+                &self.min_keyframe_points,
+                "must be >= min_inliers",
+            ));
+        }
+        if !(self.min_mean_intensity.is_finite()
+            && self.max_mean_intensity.is_finite()
+            && self.min_mean_intensity < self.max_mean_intensity)
+        {
+            return Err(bad(
+                "max_mean_intensity",
+                &self.max_mean_intensity,
+                "must be above min_mean_intensity",
+            ));
+        }
+        if !(self.min_intensity_std.is_finite() && self.min_intensity_std >= 0.0) {
+            return Err(bad(
+                "min_intensity_std",
+                &self.min_intensity_std,
+                "must be finite and >= 0",
+            ));
+        }
+        if !(1..=64).contains(&self.threads) {
+            return Err(bad("threads", &self.threads, "must be 1..=64"));
+        }
+        if !(0..=255).contains(&self.fast_threshold) {
+            return Err(bad(
+                "fast_threshold",
+                &self.fast_threshold,
+                "must be 0..=255",
+            ));
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,192 @@
+//! Nonlinear refinement of a camera motion against stereo points, and the information
+//! matrix of the result.
+//!
+//! Each correspondence is a keyframe point `P` (triangulated from its measurement
+//! `m_k = (u, v, d)` in the keyframe) seen again as `m_c` in the current frame. With `X`
+//! the current camera's pose in the keyframe frame and `p = X⁻¹ P`, the residual is
+//! `r = h(p) − m_c`, `h(p) = (fx x/z + cx, fy y/z + cy, fx b / z)`: a stereo reprojection
+//! error (two rows when the current frame has no disparity for the point). Both
+//! measurements are noisy, so `r` has covariance
+//! `Σr = S + A S Aᵀ`, `S = diag(σu², σv², σd²)`, `A = ∂h/∂p · ∂p/∂P · ∂P/∂m_k`:
+//! far points, whose depth is poor, weigh little in the directions their depth moves them.
+//! Gauss-Newton minimises `Σ rᵀ Σr⁻¹ r` over `X ⊕ δ`; the information of the estimate is
+//! `Σ Jᵀ Σr⁻¹ J` at the optimum, `J = ∂h/∂p · ∂p/∂δ` (rotation first).
+
+use nalgebra::{Matrix2, Matrix3, Matrix3x6, Vector3};
+
+use doorslam_dataset::StereoCalibration;
+use doorslam_geometry::{inverse_action_jacobian, LieGroup, Tangent, TangentMatrix, SE3};
+
+/// A keyframe point matched in the current frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Correspondence {
+    /// The point in the keyframe's camera frame.
+    pub point: Vector3<f64>,
+    /// `∂P/∂(u, v, d)` at the keyframe measurement ([`crate::stereo::triangulation_jacobian`]).
+    pub point_jacobian: Matrix3<f64>,
+    /// Its measurement in the current frame.
+    pub pixel: [f64; 2],
+    pub disparity: Option<f64>,
+}
+
+/// Measurement noise of one feature.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Noise {
+    pub pixel_sigma_px: f64,
+    pub disparity_sigma_px: f64,
+}
+
+/// A refined motion.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Refined {
+    /// Pose of the current camera in the keyframe frame.
+    pub pose: SE3,
+    /// Information of `pose` (right perturbation, rotation first).
+    pub information: TangentMatrix,
+    /// Indices of the correspondences kept.
+    pub inliers: Vec<usize>,
+    /// Mean χ² per inlier (about the residual dimension when the noise model is right).
+    pub mean_chi2: f64,
+}
+
+/// Residual, whitening and Jacobian of one correspondence at `pose`.
+struct Linearized {
+    r: Vector3<f64>,
+    w: Matrix3<f64>,
+    j: Matrix3x6<f64>,
+    chi2: f64,
+}
+
+/// Points closer than this to the camera plane (m) are not projected.
+const MIN_DEPTH_M: f64 = 0.05;
+
+fn linearize(
+    calib: &StereoCalibration,
+    noise: &Noise,
+    pose: &SE3,
+    c: &Correspondence,
+) -> Option<Linearized> {
+    let rt = pose.rotation.to_rotation_matrix().matrix().transpose();
+    let p = rt * (c.point - pose.translation.vector);
+    if p.z < MIN_DEPTH_M {
+        return None;
+    }
+    let (fx, fy, b) = (calib.fx, calib.fy, calib.baseline_m);
+    let iz = 1.0 / p.z;
+    let h = Vector3::new(
+        fx * p.x * iz + calib.cx,
+        fy * p.y * iz + calib.cy,
+        fx * b * iz,
+    );
+    let dh = Matrix3::new(
+        fx * iz,
+        0.0,
+        -fx * p.x * iz * iz,
+        0.0,
+        fy * iz,
+        -fy * p.y * iz * iz,
+        0.0,
+        0.0,
+        -fx * b * iz * iz,
+    );
+    let s = Matrix3::from_diagonal(&Vector3::new(
+        noise.pixel_sigma_px.powi(2),
+        noise.pixel_sigma_px.powi(2),
+        noise.disparity_sigma_px.powi(2),
+    ));
+    let a = dh * rt * c.point_jacobian;
+    let cov = s + a * s * a.transpose();
+    let j = dh * inverse_action_jacobian(&p);
+    let (r, w) = match c.disparity {
+        Some(d) => (
+            Vector3::new(h.x - c.pixel[0], h.y - c.pixel[1], h.z - d),
+            cov.try_inverse()?,
+        ),
+        None => {
+            let w2 =
+                Matrix2::new(cov[(0, 0)], cov[(0, 1)], cov[(1, 0)], cov[(1, 1)]).try_inverse()?;
+            let mut w = Matrix3::zeros();
+            w.fixed_view_mut::<2, 2>(0, 0).copy_from(&w2);
+            (Vector3::new(h.x - c.pixel[0], h.y - c.pixel[1], 0.0), w)
+        }
+    };
+    let chi2 = (r.transpose() * w * r)[0];
+    chi2.is_finite().then_some(Linearized { r, w, j, chi2 })
+}
+
+/// Gauss-Newton from `initial` on the correspondences `start` (RANSAC's inliers), then
+/// re-selecting inliers among all correspondences by `χ² < outlier_chi2` and refining
+/// again, until the set settles. `None` when fewer than `min_inliers` remain or the normal
+/// equations are singular (a degenerate configuration: no pose is better than a wrong one).
+pub fn refine(
+    calib: &StereoCalibration,
+    noise: &Noise,
+    correspondences: &[Correspondence],
+    initial: SE3,
+    start: &[usize],
+    outlier_chi2: f64,
+    min_inliers: usize,
+) -> Option<Refined> {
+    let mut pose = initial;
+    let mut active: Vec<usize> = start.to_vec();
+    // Huber on the whitened norm keeps a few gross outliers among RANSAC's inliers from
+    // pulling the first iterations.
+    let huber = outlier_chi2.sqrt();
+    for _round in 0..4 {
+        if active.len() < min_inliers {
+            return None;
+        }
+        for _it in 0..10 {
+            let mut hess = TangentMatrix::zeros();
+            let mut grad = Tangent::zeros();
+            for &i in &active {
+                let Some(l) = linearize(calib, noise, &pose, &correspondences[i]) else {
+                    continue;
+                };
+                let e = l.chi2.sqrt();
+                let weight = if e > huber { huber / e } else { 1.0 };
+                let jtw = l.j.transpose() * l.w * weight;
+                hess += jtw * l.j;
+                grad += jtw * l.r;
+            }
+            let delta = -hess.cholesky()?.solve(&grad);
+            if !delta.iter().all(|x| x.is_finite()) {
+                return None;
+            }
+            pose = pose.oplus(&delta);
+            if delta.norm() < 1e-10 {
+                break;
+            }
+        }
+        let next: Vec<usize> = (0..correspondences.len())
+            .filter(|&i| {
+                linearize(calib, noise, &pose, &correspondences[i])
+                    .is_some_and(|l| l.chi2 < outlier_chi2)
+            })
+            .collect();
+        let settled = next == active;
+        active = next;
+        if settled {
+            break;
+        }
+    }
+    if active.len() < min_inliers {
+        return None;
+    }
+    let mut information = TangentMatrix::zeros();
+    let mut chi2 = 0.0;
+    for &i in &active {
+        let l = linearize(calib, noise, &pose, &correspondences[i])?;
+        information += l.j.transpose() * l.w * l.j;
+        chi2 += l.chi2;
+    }
+    // Symmetric to rounding: mirror the upper triangle so downstream checks see exact symmetry.
+    let information = 0.5 * (information + information.transpose());
+    information.cholesky()?;
+    Some(Refined {
+        pose,
+        information,
+        mean_chi2: chi2 / active.len() as f64,
+        inliers: active,
+    })
+}

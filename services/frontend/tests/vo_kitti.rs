@@ -1,0 +1,66 @@
+//! Stereo VO on real KITTI images from ../shared/data/stereo (relative to the repository).
+
+use std::path::PathBuf;
+
+use doorslam_dataset::Dataset;
+use doorslam_frontend::run::{endpoint_drift, run_dataset};
+use doorslam_frontend::VoConfig;
+
+fn data(rel: &str) -> PathBuf {
+    // Tests run in the package root (services/frontend); the data sits beside the repo.
+    let root = std::env::var_os("DOORSLAM_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from("../../../shared/data"));
+    let p = root.join(rel);
+    assert!(
+        p.is_dir(),
+        "test data missing: {} (set DOORSLAM_DATA)",
+        p.display()
+    );
+    p
+}
+
+#[test]
+fn kitti_06_clip_end_point_drift_is_bounded() {
+    let dataset = Dataset::open(&data("stereo/kitti06_0000-0050")).unwrap();
+    let report = run_dataset(&dataset, VoConfig::default(), &|_, _| {}).unwrap();
+    assert_eq!(report.poses.len(), 51);
+    assert_eq!(report.stats.lost, 0, "{:?}", report.stats);
+    assert_eq!(report.stats.segments, 1);
+    let drift = endpoint_drift(&report.poses, dataset.truth.as_ref().unwrap()).unwrap();
+    eprintln!("KITTI 06 clip: {drift:?}");
+    assert!((55.0..65.0).contains(&drift.distance_m));
+    assert!(
+        drift.percent < 1.5,
+        "end-point drift {:.2} %",
+        drift.percent
+    );
+    // Every odometry edge joins consecutive keyframes and has a positive-definite information.
+    for e in &report.edges {
+        assert_eq!(e.to, e.from + 1);
+        doorslam_geometry::check_information(
+            &e.information,
+            6,
+            doorslam_geometry::InformationCheck::PositiveDefinite,
+        )
+        .unwrap();
+    }
+    let features = &report.keyframes[0].features;
+    assert!(features.len() > 200, "{} keyframe features", features.len());
+    assert!(features.iter().all(|f| f.point[2] > 0.0
+        && f.depth_sigma_m > 0.0
+        && f.point.iter().all(|x| x.is_finite())));
+}
+
+#[test]
+fn kitti_raw_drive_0001_is_never_lost() {
+    let dataset = Dataset::open(&data("stereo/kitti_raw_2011_09_26_drive_0001")).unwrap();
+    let report = run_dataset(&dataset, VoConfig::default(), &|_, _| {}).unwrap();
+    assert_eq!(report.poses.len(), 108);
+    assert_eq!(
+        (report.stats.lost, report.stats.segments),
+        (0, 1),
+        "{:?}",
+        report.stats
+    );
+}

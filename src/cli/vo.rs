@@ -1,0 +1,134 @@
+//! `doorslam vo DIR`: stereo visual odometry over a KITTI-layout folder (KITTI odometry or
+//! `doorslam sim world` output); writes every frame's pose in KITTI format.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use doorslam_frontend::run::{edge_nees, endpoint_drift, kitti_text, quantile, run_dataset};
+use doorslam_frontend::{Detector, VoConfig};
+
+#[derive(Debug, Args)]
+pub struct VoArgs {
+    /// Dataset folder: KITTI layout (image_0/, image_1/, calib.txt, optional times.txt and
+    /// poses.txt). EuRoC folders are refused until rectification lands.
+    pub dir: PathBuf,
+    /// Write the estimated pose of every frame here (KITTI format: 12 numbers per line, one
+    /// line per frame; a lost frame repeats the last estimated pose).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Print one JSON object on stdout instead of a summary line.
+    #[arg(long)]
+    pub json: bool,
+    /// OpenCV worker threads (the robot's budget is one core).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Odometry settings (TOML with any fields of the front-end's VoConfig).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Keypoint detector: gftt (default), fast or orb.
+    #[arg(long)]
+    pub detector: Option<String>,
+}
+
+pub fn run(a: VoArgs) -> Result<()> {
+    let mut config: VoConfig = match &a.config {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?
+        }
+        None => VoConfig::default(),
+    };
+    if let Some(t) = a.threads {
+        config.threads = t;
+    }
+    if let Some(d) = &a.detector {
+        config.detector = match d.as_str() {
+            "gftt" => Detector::Gftt,
+            "fast" => Detector::Fast,
+            "orb" => Detector::Orb,
+            other => anyhow::bail!("--detector {other}: expected gftt, fast or orb"),
+        };
+    }
+    config.validate().context("odometry settings")?;
+    let dataset = doorslam_dataset::Dataset::open(&a.dir)
+        .with_context(|| format!("opening {}", a.dir.display()))?;
+    let step = dataset.len().div_ceil(10).max(1);
+    let progress = |done: usize, total: usize| {
+        if done.is_multiple_of(step) || done == total {
+            eprintln!("vo: {done}/{total} frames");
+        }
+    };
+    let detector = config.detector;
+    let threads = config.threads;
+    let report = run_dataset(&dataset, config, &progress)
+        .with_context(|| format!("visual odometry on {}", a.dir.display()))?;
+    if let Some(out) = &a.out {
+        std::fs::write(out, kitti_text(&report.poses))
+            .with_context(|| format!("writing {}", out.display()))?;
+    }
+    let drift = dataset
+        .truth
+        .as_ref()
+        .and_then(|t| endpoint_drift(&report.poses, t));
+    let median = quantile(&report.ms_per_frame, 0.5).unwrap_or(0.0);
+    let p90 = quantile(&report.ms_per_frame, 0.9).unwrap_or(0.0);
+    let cpu_median = quantile(&report.cpu_ms_per_frame, 0.5).unwrap_or(0.0);
+    let s = report.stats;
+    if a.json {
+        let mut v = serde_json::json!({
+            "frames": s.frames,
+            "keyframes": s.keyframes,
+            "lost": s.lost,
+            "segments": s.segments,
+            "time_s": report.time_s,
+            "ms_per_frame_median": median,
+            "ms_per_frame_p90": p90,
+            "lost_frames": s.lost_frames,
+            "cpu_ms_per_frame_median": quantile(&report.cpu_ms_per_frame, 0.5).unwrap_or(0.0),
+            "cpu_ms_per_frame_p90": quantile(&report.cpu_ms_per_frame, 0.9).unwrap_or(0.0),
+            "edges": report.edges.len(),
+            "ms_per_frame_mean": report.ms_per_frame.iter().sum::<f64>() / report.ms_per_frame.len().max(1) as f64,
+            "load_ms_per_frame_median": quantile(&report.load_ms_per_frame, 0.5).unwrap_or(0.0),
+            "detector": format!("{detector:?}").to_lowercase(),
+            "threads": threads,
+        });
+        if let Some(truth) = &dataset.truth {
+            let index: Vec<usize> = dataset.frames.iter().map(|f| f.index).collect();
+            let nees = edge_nees(&report.keyframes, &report.edges, &index, truth);
+            if !nees.is_empty() {
+                v["edge_nees_mean"] = (nees.iter().sum::<f64>() / nees.len() as f64).into();
+                v["edge_nees_median"] = quantile(&nees, 0.5).unwrap_or(0.0).into();
+            }
+        }
+        if let Some(d) = drift {
+            v["distance_m"] = d.distance_m.into();
+            v["endpoint_error_m"] = d.endpoint_error_m.into();
+            v["drift_percent"] = d.percent.into();
+        }
+        if let Some(out) = &a.out {
+            v["out"] = out.display().to_string().into();
+        }
+        println!("{v}");
+    } else {
+        let drift = drift
+            .map(|d| {
+                format!(
+                    ", end-point drift {:.2} m over {:.1} m ({:.2} %)",
+                    d.endpoint_error_m, d.distance_m, d.percent
+                )
+            })
+            .unwrap_or_default();
+        println!(
+            "{}: {} frames, {} keyframes, {} segment(s), lost {} time(s) ({} frames); {median:.1} ms/frame median ({cpu_median:.1} ms CPU), {p90:.1} p90{drift}",
+            a.dir.display(),
+            s.frames,
+            s.keyframes,
+            s.segments,
+            s.lost,
+            s.lost_frames
+        );
+    }
+    Ok(())
+}
