@@ -6,6 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use doorslam_backend::distributed::condensed::PcmSettings;
 use doorslam_backend::distributed::runner::{run as run_team, RunOptions};
 use doorslam_backend::distributed::{AgentOptions, Method};
 
@@ -37,6 +38,17 @@ pub struct DpgoArgs {
     /// block-coordinate refinement (dgs), or the condensed separator graph (condensed).
     #[arg(long, value_enum, default_value_t = MethodArg::Condensed)]
     pub method: MethodArg,
+    /// Run PCM inside the loop with this probability threshold (condensed method; the
+    /// centralized reference runs offline PCM with the same settings).
+    #[arg(long)]
+    pub pcm: Option<f64>,
+    /// Ground truth of the closures (`doorslam sim graph`'s labels.txt: key_a key_b ...
+    /// label, 1 inlier / 0 outlier): report PCM's precision and recall in the loop.
+    #[arg(long)]
+    pub labels: Option<PathBuf>,
+    /// Smallest clique PCM keeps per robot pair.
+    #[arg(long, default_value_t = 2)]
+    pub min_clique: usize,
     /// Plain Gauss-Seidel / block-coordinate descent, without Nesterov momentum.
     #[arg(long)]
     pub no_momentum: bool,
@@ -101,6 +113,44 @@ fn parse_outage(v: &[String]) -> Result<BTreeMap<u8, std::ops::Range<u64>>> {
         .collect()
 }
 
+/// Precision and recall of the kept closures against a labels file.
+fn pcm_quality(path: &std::path::Path, rejected: &[(u64, u64)]) -> Result<(f64, f64)> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let rejected: std::collections::BTreeSet<(u64, u64)> = rejected
+        .iter()
+        .flat_map(|&(a, b)| [(a, b), (b, a)])
+        .collect();
+    let (mut tp, mut fp, mut fne) = (0u64, 0u64, 0u64);
+    for (n, line) in text.lines().enumerate() {
+        if line.starts_with('#') || line.trim().is_empty() {
+            continue;
+        }
+        let f: Vec<&str> = line.split_whitespace().collect();
+        let parse = |i: usize| -> Result<u64> {
+            f.get(i).and_then(|v| v.parse().ok()).with_context(|| {
+                format!(
+                    "{}:{}: field {} is not a number",
+                    path.display(),
+                    n + 1,
+                    i + 1
+                )
+            })
+        };
+        let (a, b, label) = (parse(0)?, parse(1)?, parse(6)?);
+        let kept = !rejected.contains(&(a, b));
+        match (label == 1, kept) {
+            (true, true) => tp += 1,
+            (false, true) => fp += 1,
+            (true, false) => fne += 1,
+            (false, false) => {}
+        }
+    }
+    let precision = tp as f64 / (tp + fp).max(1) as f64;
+    let recall = tp as f64 / (tp + fne).max(1) as f64;
+    Ok((precision, recall))
+}
+
 pub fn run(args: DpgoArgs) -> Result<()> {
     if !(0.0..1.0).contains(&args.drop) {
         bail!("--drop {}: a probability in [0, 1)", args.drop);
@@ -124,6 +174,18 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         agent.gamma = g;
     }
     agent.momentum = !args.no_momentum;
+    if let Some(p) = args.pcm {
+        if !(p > 0.0 && p < 1.0) {
+            bail!("--pcm {p}: a probability strictly between 0 and 1");
+        }
+        if matches!(args.method, MethodArg::Dgs) {
+            bail!("--pcm runs inside the condensed method only (DGS: check closures first with doorslam pcm)");
+        }
+        agent.pcm = Some(PcmSettings {
+            threshold: p,
+            min_clique: args.min_clique,
+        });
+    }
     agent.method = match args.method {
         MethodArg::Dgs => Method::Dgs,
         MethodArg::Condensed => Method::Condensed,
@@ -143,8 +205,17 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         .collect::<Vec<_>>()
         .join(", ");
     let r = run_team(&graph, &options).with_context(|| format!("distributed PGO of {names}"))?;
+    let quality = match &args.labels {
+        Some(path) => Some(pcm_quality(path, &r.rejected_keys)?),
+        None => None,
+    };
     if args.json {
-        println!("{}", serde_json::to_string(&r)?);
+        let mut v = serde_json::to_value(&r)?;
+        if let (Some((precision, recall)), Some(o)) = (quality, v.as_object_mut()) {
+            o.insert("pcm_precision".into(), precision.into());
+            o.insert("pcm_recall".into(), recall.into());
+        }
+        println!("{v}");
     } else {
         println!(
             "{:?}: {} robots, {} poses ({} separators): {} in {} rounds",
@@ -170,6 +241,15 @@ pub fn run(args: DpgoArgs) -> Result<()> {
             "{} messages, {} bytes (centralized: {} bytes, ratio {:.3}); {} dropped, {} resent",
             r.messages, r.bytes, r.bytes_centralized, r.bytes_ratio, r.dropped, r.resent
         );
+        if let Some((precision, recall)) = quality {
+            println!("PCM against the labels: precision {precision:.3}, recall {recall:.3}");
+        }
+        if args.pcm.is_some() {
+            println!(
+                "PCM: {} of {} inter-robot closures rejected in the loop, {} by the centralized oracle",
+                r.rejected_distributed, r.closures, r.rejected_centralized
+            );
+        }
     }
     Ok(())
 }

@@ -24,6 +24,7 @@ use super::local::{prior_through, OwnClosure, OwnEdge};
 use super::DpgoError;
 use crate::graph::PoseGraph;
 use crate::init::Chordal;
+use crate::outliers::{Pcm, Scope};
 use crate::solver::{optimize, SolverOptions};
 
 /// A relative-pose constraint of a condensed graph: `z ≈ X_a⁻¹ X_b`, rotation-first
@@ -149,16 +150,98 @@ pub(crate) fn condense(
     Ok(out)
 }
 
+/// PCM settings inside the loop: probability threshold and smallest clique per robot pair.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PcmSettings {
+    pub threshold: f64,
+    pub min_clique: usize,
+}
+
+/// PCM on the separator graph: the inter-robot closures it keeps, as (key, key) both ways.
+///
+/// Free of extra messages: the condensed graphs every robot holds already carry what PCM
+/// needs — the closures, and between consecutive separators the compounded odometry with
+/// its covariance, which is exactly the relative odometry PCM chains along a trajectory.
+/// Separators are renumbered per robot (the k-th separator gets index k) so the super-edges
+/// are "odometry" to PCM; every robot runs the same check on the same graph.
+pub(crate) fn pcm_inliers(
+    graphs: &BTreeMap<u8, Vec<CondensedEdge>>,
+    settings: PcmSettings,
+) -> Result<BTreeSet<(u64, u64)>, DpgoError> {
+    let mut all: Vec<&CondensedEdge> = graphs.values().flatten().collect();
+    all.sort_by_key(|e| (e.a, e.b));
+    let keys: BTreeSet<u64> = all.iter().flat_map(|e| [e.a, e.b]).collect();
+    let mut rank: BTreeMap<u64, u64> = BTreeMap::new();
+    let mut back: BTreeMap<u64, u64> = BTreeMap::new();
+    let mut next: BTreeMap<u8, u64> = BTreeMap::new();
+    for k in &keys {
+        let r = key::robot(*k).ok_or_else(|| DpgoError::NoRobot(key::label(*k)))?;
+        let n = next.entry(r).or_insert(0);
+        let renamed = key::symbol(r, *n).map_err(|_| DpgoError::NoRobot(key::label(*k)))?;
+        *n += 1;
+        rank.insert(*k, renamed);
+        back.insert(renamed, *k);
+    }
+    let mut g = PoseGraph::<SE3>::new();
+    for k in rank.values() {
+        g.add_pose(*k, SE3::identity());
+    }
+    let mut has_closure = false;
+    for e in &all {
+        let (a, b) = (rank[&e.a], rank[&e.b]);
+        // A super-edge between non-consecutive separators (a gap in between) or an
+        // intra-robot loop is not odometry to PCM; it is left out of its chains.
+        let same = key::robot(a) == key::robot(b);
+        if same && key::index(a).abs_diff(key::index(b)) != 1 {
+            continue;
+        }
+        has_closure |= !same;
+        let (i, j) = (
+            g.index_of(a).unwrap_or_default(),
+            g.index_of(b).unwrap_or_default(),
+        );
+        g.add_edge(i, j, e.z, e.information)?;
+    }
+    if !has_closure {
+        return Ok(BTreeSet::new());
+    }
+    let mut pcm = Pcm::new(settings.threshold, Scope::InterRobot)
+        .map_err(|e| DpgoError::Pcm(e.to_string()))?;
+    pcm.min_clique = settings.min_clique;
+    let s = pcm.run(&g).map_err(|e| DpgoError::Pcm(e.to_string()))?;
+    Ok(s.inliers
+        .iter()
+        .flat_map(|&(u, v)| {
+            let (a, b) = (back[&u], back[&v]);
+            [(a, b), (b, a)]
+        })
+        .collect())
+}
+
 /// Solves the separator graph of the team `graphs` (origin → edges) that contains pose
 /// `mine`: chordal initialization and Levenberg-Marquardt with the lowest key of that
 /// connected part (the lowest robot's first pose) fixed at the identity — the team frame.
-/// Returns the separator estimates.
+/// Returns the separator estimates and the closures PCM rejected.
 pub(crate) fn solve_separators(
     graphs: &BTreeMap<u8, Vec<CondensedEdge>>,
     mine: u64,
-) -> Result<BTreeMap<u64, SE3>, DpgoError> {
+    pcm: Option<PcmSettings>,
+) -> Result<(BTreeMap<u64, SE3>, Vec<(u64, u64)>), DpgoError> {
     let mut g = PoseGraph::<SE3>::new();
-    let mut all: Vec<&CondensedEdge> = graphs.values().flatten().collect();
+    let inliers = pcm.map(|p| pcm_inliers(graphs, p)).transpose()?;
+    let inter = |e: &CondensedEdge| key::robot(e.a) != key::robot(e.b);
+    let mut rejected = Vec::new();
+    let mut all: Vec<&CondensedEdge> = graphs
+        .values()
+        .flatten()
+        .filter(|e| {
+            let keep = !inter(e) || inliers.as_ref().is_none_or(|i| i.contains(&(e.a, e.b)));
+            if !keep {
+                rejected.push((e.a, e.b));
+            }
+            keep
+        })
+        .collect();
     // Canonical order: every robot builds the same graph from the same input.
     all.sort_by_key(|e| (e.a, e.b));
     let mut keys: BTreeSet<u64> = all.iter().flat_map(|e| [e.a, e.b]).collect();
@@ -196,12 +279,14 @@ pub(crate) fn solve_separators(
         SE3::chordal(&mut part, anchor)?;
         optimize(&mut part, anchor, &SolverOptions::default())?;
     }
-    Ok(part
-        .keys()
-        .iter()
-        .copied()
-        .zip(part.poses().iter().copied())
-        .collect())
+    Ok((
+        part.keys()
+            .iter()
+            .copied()
+            .zip(part.poses().iter().copied())
+            .collect(),
+        rejected,
+    ))
 }
 
 /// The robot's interior poses with its separators fixed at `fixed`: Levenberg-Marquardt on

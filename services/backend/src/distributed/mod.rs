@@ -100,6 +100,8 @@ pub enum DpgoError {
         #[source]
         source: QuantizeError,
     },
+    #[error("PCM: {0}")]
+    Pcm(String),
     #[error("message from robot {from}: {reason}")]
     BadMessage { from: u8, reason: String },
 }
@@ -137,6 +139,9 @@ pub struct AgentOptions {
     pub momentum: bool,
     /// How the team's problem is solved.
     pub method: Method,
+    /// PCM on the team's inter-robot closures before each solve (condensed method; no
+    /// extra messages), or none (closures were checked before).
+    pub pcm: Option<condensed::PcmSettings>,
 }
 
 /// The distributed solver.
@@ -168,6 +173,7 @@ impl Default for AgentOptions {
             refine_iterations: 10,
             momentum: true,
             method: Method::default(),
+            pcm: None,
         }
     }
 }
@@ -251,6 +257,8 @@ pub struct AgentStats {
     pub refused: u64,
     /// Re-initializations (a lower anchor heard, a neighbour's frame changed).
     pub reinitializations: u64,
+    /// Inter-robot closures PCM left out of the last solve.
+    pub rejected_closures: u64,
 }
 
 /// One robot's share of the distributed pose-graph optimization.
@@ -296,6 +304,8 @@ pub struct Agent {
     /// (neighbour, origin) → step since which the neighbour lacks the origin's graph
     /// while another robot was expected to forward it (see `graph_messages_for`).
     graph_due_since: BTreeMap<(u8, u8), u64>,
+    /// Inter-robot closures (key, key) PCM left out of the last solve.
+    rejected: Vec<(u64, u64)>,
     stats: AgentStats,
 }
 
@@ -333,6 +343,7 @@ impl Agent {
             own_graph_counter: 0,
             solved_with: BTreeMap::new(),
             graph_due_since: BTreeMap::new(),
+            rejected: Vec::new(),
             stats: AgentStats::default(),
         }
     }
@@ -508,6 +519,12 @@ impl Agent {
 
     pub fn stats(&self) -> AgentStats {
         self.stats
+    }
+
+    /// The inter-robot closures (key, key) PCM left out of the last solve (condensed
+    /// method with PCM in the loop).
+    pub fn rejected_closures(&self) -> &[(u64, u64)] {
+        &self.rejected
     }
 
     /// The robot's poses, in the team's frame once [`Self::anchored`].
@@ -1227,7 +1244,10 @@ impl Agent {
             .iter()
             .map(|(o, (_, e))| (*o, e.clone()))
             .collect();
-        let separators = condensed::solve_separators(&graphs, self.keys[0])?;
+        let (separators, rejected) =
+            condensed::solve_separators(&graphs, self.keys[0], self.options.pcm)?;
+        self.stats.rejected_closures = rejected.len() as u64;
+        self.rejected = rejected;
         let fixed: Vec<Option<SE3>> = self
             .keys
             .iter()

@@ -6,7 +6,7 @@
 //! graph (chordal initialization + Levenberg-Marquardt, `doorslam pgo`'s default) with
 //! the same pose fixed, so trajectories compare without alignment.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::ops::Range;
 use std::time::Instant;
 
@@ -19,6 +19,7 @@ use doorslam_ipc::wire::{
 use super::{Agent, AgentOptions, DpgoError};
 use crate::graph::{EdgeClass, PoseGraph};
 use crate::init::Chordal;
+use crate::outliers::{Pcm, Scope};
 use crate::solver::{optimize, SolverOptions};
 
 /// How the team is played.
@@ -78,6 +79,15 @@ pub struct RunReport {
     pub reinitializations: u64,
     pub separators: usize,
     pub poses: usize,
+    /// Inter-robot closures in the team graph, and those PCM rejected inside the loop
+    /// (most over the robots: they run the same check) and in the centralized oracle.
+    pub closures: usize,
+    pub rejected_distributed: u64,
+    pub rejected_centralized: usize,
+    /// The closures PCM rejected in the loop, by the lowest robot (the others run the same
+    /// check on the same graph).
+    #[serde(skip)]
+    pub rejected_keys: Vec<(u64, u64)>,
 }
 
 /// Deterministic loss draws (splitmix64): runs repeat exactly.
@@ -274,6 +284,35 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
             central.add_pose(*k, *x);
         }
     }
+    // The centralized oracle on the same closures: offline PCM on the merged graph with
+    // the agents' settings.
+    let mut rejected_centralized = 0usize;
+    if let Some(p) = options.agent.pcm {
+        let mut pcm =
+            Pcm::new(p.threshold, Scope::InterRobot).map_err(|e| DpgoError::Pcm(e.to_string()))?;
+        pcm.min_clique = p.min_clique;
+        let summary = pcm
+            .run(&central)
+            .map_err(|e| DpgoError::Pcm(e.to_string()))?;
+        let keep: BTreeSet<(u64, u64)> = summary
+            .inliers
+            .iter()
+            .flat_map(|&(a, b)| [(a, b), (b, a)])
+            .collect();
+        let keys = central.keys().to_vec();
+        let before = central.edges().len();
+        let classes: Vec<EdgeClass> = central
+            .edges()
+            .iter()
+            .map(|e| central.edge_class(e))
+            .collect();
+        let mut n = 0;
+        central.retain_edges(|e| {
+            n += 1;
+            classes[n - 1] != EdgeClass::InterLoop || keep.contains(&(keys[e.i], keys[e.j]))
+        });
+        rejected_centralized = before - central.edges().len();
+    }
     let anchor = central.index_of(anchor_key).unwrap_or_default();
     SE3::chordal(&mut central, anchor)?;
     optimize(&mut central, anchor, &SolverOptions::default())?;
@@ -375,7 +414,8 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
     // The team's estimate against the centralized one, in the centralized frame (the
     // condensed method fixes the anchor pose at the identity, the centralized solve and
     // DGS at its initial value: one rigid transform apart, which χ² does not see).
-    let mut distributed = graph.clone();
+    // χ² on the centralized oracle's graph: with PCM, the closures it kept.
+    let mut distributed = central.clone();
     for a in agents.values() {
         for (k, x) in a.estimate() {
             if let Some(p) = distributed.index_of(k) {
@@ -425,5 +465,13 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
         reinitializations: stats.iter().map(|s| s.reinitializations).sum(),
         separators,
         poses,
+        closures: closures.len(),
+        rejected_distributed: stats.iter().map(|s| s.rejected_closures).max().unwrap_or(0),
+        rejected_centralized,
+        rejected_keys: agents
+            .values()
+            .next()
+            .map(|a| a.rejected_closures().to_vec())
+            .unwrap_or_default(),
     })
 }
