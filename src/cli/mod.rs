@@ -1,6 +1,7 @@
 //! Subcommands, one file each.
 
 mod bench;
+mod bw;
 mod demo;
 mod eval;
 mod pcm;
@@ -42,7 +43,7 @@ pub enum Command {
     /// Replay a dataset (KITTI / EuRoC layout) into the on-robot pipeline.
     Replay(replay::ReplayArgs),
     /// Measure what each inter-robot message kind costs in bytes.
-    Bw(pending::PendingArgs),
+    Bw(bw::BwArgs),
     /// Run the demo (today: a check of the whole dependency stack on real data).
     Demo(demo::DemoArgs),
     /// Measure the on-robot transports (iceoryx2, Zenoh shared memory, Unix socket).
@@ -73,7 +74,7 @@ pub fn main() -> ExitCode {
         Command::Eval(args) => eval::run(args),
         Command::Sim(args) => sim::run(args),
         Command::Replay(args) => replay::run(args),
-        Command::Bw(args) => pending::fail("bw", "the team-link issue (next wave)", &args),
+        Command::Bw(args) => bw::run(args),
         Command::Demo(args) => demo::run(args),
         Command::Bench(args) => bench::run(args),
     };

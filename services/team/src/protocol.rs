@@ -132,6 +132,10 @@ pub struct ProtocolConfig {
     pub retransmit_ms: u64,
     /// Descriptors per batch.
     pub descriptor_batch: usize,
+    /// A partial batch (fewer than `descriptor_batch` new keyframes) waits this long after
+    /// the previous batch for more keyframes: a batch's header and range are shared by its
+    /// descriptors, so keyframes trickling in during a meeting are not sent one by one.
+    pub batch_linger_ms: u64,
     /// Unacknowledged messages of one kind beyond which no new descriptor batch is queued.
     pub window: usize,
     /// Sequences accepted ahead of the first missing one (bounds the receiver's memory
@@ -144,6 +148,7 @@ impl Default for ProtocolConfig {
         Self {
             retransmit_ms: 1000,
             descriptor_batch: 16,
+            batch_linger_ms: 500,
             window: 32,
             receive_window: 4096,
         }
@@ -281,6 +286,7 @@ pub struct PeerSession {
     ack_due: BTreeSet<Kind>,
     // α
     descriptors_queued_below: u64,
+    last_batch_ms: Option<u64>,
     pending_matches: Vec<Match>,
     peer_features: HashMap<u64, VerificationFeatures>,
     verified: HashSet<(u64, u64)>,
@@ -315,6 +321,7 @@ impl PeerSession {
             received: BTreeMap::new(),
             ack_due: BTreeSet::new(),
             descriptors_queued_below: 0,
+            last_batch_ms: None,
             pending_matches: Vec::new(),
             peer_features: HashMap::new(),
             verified: HashSet::new(),
@@ -412,7 +419,7 @@ impl PeerSession {
         }
         if self.peer_robot.is_some() {
             if self.role == Role::Initiator {
-                self.queue_descriptors(svc);
+                self.queue_descriptors(now_ms, svc);
             }
             for body in svc.backend.messages_for(&self.peer) {
                 self.stats.backend_sent += 1;
@@ -458,7 +465,7 @@ impl PeerSession {
         out
     }
 
-    fn queue_descriptors(&mut self, svc: &mut Services<'_>) {
+    fn queue_descriptors(&mut self, now_ms: u64, svc: &mut Services<'_>) {
         loop {
             let in_flight = self
                 .outboxes
@@ -474,6 +481,14 @@ impl PeerSession {
             if batch.keyframes.end <= from || batch.keyframes.start != from {
                 return;
             }
+            let partial = batch.descriptors.len() < self.config.descriptor_batch;
+            let lingering = self
+                .last_batch_ms
+                .is_some_and(|t| now_ms.saturating_sub(t) < self.config.batch_linger_ms);
+            if partial && lingering {
+                return;
+            }
+            self.last_batch_ms = Some(now_ms);
             self.descriptors_queued_below = batch.keyframes.end;
             self.queue(Body::Descriptors(Descriptors {
                 robot: self.me.robot,

@@ -26,6 +26,7 @@ fn config() -> ProtocolConfig {
     ProtocolConfig {
         retransmit_ms: 200,
         descriptor_batch: 16,
+        batch_linger_ms: 100,
         window: 4,
         receive_window: 4096,
     }
@@ -157,7 +158,9 @@ fn meeting_cut_mid_exchange_resumes_without_loss_or_resending_acknowledged_data(
 
     bus.join(&ida, &idb);
     step_until(&mut [&mut a, &mut b], &mut now, 5000, |r| {
-        everything_acknowledged(r[0], &idb) && everything_acknowledged(r[1], &ida)
+        everything_acknowledged(r[0], &idb)
+            && everything_acknowledged(r[1], &ida)
+            && delivered(r[1], &ida).len() == 300
     });
 
     // Every descriptor delivered exactly once.
