@@ -83,18 +83,21 @@ pub fn load(path: &Path) -> Result<Vec<(PathBuf, LedgerFile)>, BwError> {
         .collect()
 }
 
-/// One line of Table II.
+/// One line of Table II: first sends (what one message costs); resends of unacknowledged
+/// messages (what the link's losses cost on top) apart.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct KindFigure {
-    /// Units the average is per (see `unit`).
+    /// Units the average is per (see `unit`), first sends.
     pub count: u64,
-    /// Payload bytes (encoded messages, headers included).
+    /// Payload bytes (encoded messages, headers included), first sends.
     pub bytes: u64,
     pub avg_bytes: f64,
     pub messages: u64,
-    /// Payload plus Zenoh framing.
+    /// Payload plus Zenoh framing, first sends.
     pub wire_bytes: u64,
     pub avg_wire_bytes: f64,
+    pub resent_messages: u64,
+    pub resent_bytes: u64,
     pub unit: &'static str,
     /// The paper's figure (DOOR-SLAM Table II), bytes per unit, where it gives one.
     pub paper_avg_bytes: Option<f64>,
@@ -109,11 +112,16 @@ impl KindFigure {
         }
     }
 
-    fn add(&mut self, c: &Counts, count: u64) {
-        self.messages += c.messages;
-        self.bytes += c.payload_bytes;
-        self.wire_bytes += c.wire_bytes;
-        self.count += count;
+    /// Adds a ledger row; `count` of units, of which `resent_count` in resends.
+    fn add(&mut self, c: &Counts, count: u64, resent_count: u64, framing: u64) {
+        let first = c.messages - c.resent_messages.min(c.messages);
+        self.messages += first;
+        self.bytes += c.payload_bytes - c.resent_payload_bytes.min(c.payload_bytes);
+        self.wire_bytes +=
+            c.payload_bytes - c.resent_payload_bytes.min(c.payload_bytes) + first * framing;
+        self.count += count - resent_count.min(count);
+        self.resent_messages += c.resent_messages;
+        self.resent_bytes += c.resent_payload_bytes;
     }
 
     fn finish(&mut self) {
@@ -193,8 +201,10 @@ pub struct BwReport {
     /// One raw keyframe image per descriptor and per verification packet.
     pub raw_image_equivalent_bytes: u64,
     pub raw_image_bytes: u64,
-    /// Payload bytes of every message, counted once (by its sender).
+    /// Payload bytes of every message, counted once (by its sender), resends included.
     pub total_bytes: u64,
+    /// Of which resends of unacknowledged messages.
+    pub resent_bytes: u64,
     pub total_wire_bytes: u64,
     pub framing_overhead_bytes_per_message: u64,
     pub framing_method: String,
@@ -274,24 +284,28 @@ pub fn report(ledgers: &[(PathBuf, LedgerFile)]) -> BwReport {
             total.messages += t.counts.messages;
             total.payload_bytes += t.counts.payload_bytes;
             total.wire_bytes += t.counts.wire_bytes;
+            total.resent_payload_bytes += t.counts.resent_payload_bytes;
             let c = &t.counts;
+            let f = l.framing.overhead_bytes_per_message;
+            let (items, resent_items) = (c.items, c.resent_items);
+            let (msgs, resent_msgs) = (c.messages, c.resent_messages);
             match t.kind.as_str() {
-                "descriptors" => per_kind.descriptor.add(c, c.items),
-                "verification_features" => per_kind.verification_features.add(c, 0),
+                "descriptors" => per_kind.descriptor.add(c, items, resent_items, f),
+                "verification_features" => per_kind.verification_features.add(c, 0, 0, f),
                 "matches" => {
-                    per_kind.matches.add(c, c.items);
+                    per_kind.matches.add(c, items, resent_items, f);
                     // The verification packets are per putative match.
-                    per_kind.verification_features.count += c.items;
+                    per_kind.verification_features.count += items - resent_items.min(items);
                 }
-                "loop_closures" => per_kind.loop_closure.add(c, c.items),
-                "hello" => per_kind.hello.add(c, c.messages),
-                "ack" => per_kind.ack.add(c, c.messages),
+                "loop_closures" => per_kind.loop_closure.add(c, items, resent_items, f),
+                "hello" => per_kind.hello.add(c, msgs, resent_msgs, f),
+                "ack" => per_kind.ack.add(c, msgs, resent_msgs, f),
                 other => {
                     if other == "pose_estimates" {
-                        per_kind.pose_estimate.add(c, c.items);
+                        per_kind.pose_estimate.add(c, items, resent_items, f);
                     }
                     debug_assert!(!RENDEZVOUS_KINDS.contains(&other));
-                    per_kind.backend.add(c, c.messages);
+                    per_kind.backend.add(c, msgs, resent_msgs, f);
                 }
             }
         }
@@ -323,6 +337,7 @@ pub fn report(ledgers: &[(PathBuf, LedgerFile)]) -> BwReport {
         raw_image_equivalent_bytes,
         raw_image_bytes,
         total_bytes: total.payload_bytes,
+        resent_bytes: total.resent_payload_bytes,
         total_wire_bytes: total.wire_bytes,
         framing_overhead_bytes_per_message: framing.0,
         framing_method: framing.1,
@@ -342,8 +357,8 @@ impl BwReport {
         let k = &self.per_kind;
         let _ = writeln!(
             s,
-            "{:<22} {:>8} {:>12} {:>12} {:>12}  unit",
-            "message", "count", "avg payload", "avg on wire", "paper"
+            "{:<22} {:>8} {:>12} {:>12} {:>12} {:>10}  unit",
+            "message", "count", "avg payload", "avg on wire", "paper", "resent"
         );
         for (name, f) in [
             ("place descriptor", &k.descriptor),
@@ -357,19 +372,21 @@ impl BwReport {
         ] {
             let _ = writeln!(
                 s,
-                "{:<22} {:>8} {:>12} {:>12} {:>12}  {}",
+                "{:<22} {:>8} {:>12} {:>12} {:>12} {:>10}  {}",
                 name,
                 f.count,
                 kb(f.avg_bytes),
                 kb(f.avg_wire_bytes),
                 f.paper_avg_bytes.map(kb).unwrap_or_else(|| "-".into()),
+                kb(f.resent_bytes as f64),
                 f.unit
             );
         }
         let _ = writeln!(
             s,
-            "\ntotal {} payload, {} on the wire (Zenoh framing {} B/message); raw images instead: {}",
+            "\ntotal {} payload ({} of it resends), {} on the wire (Zenoh framing {} B/message); raw images instead: {}",
             kb(self.total_bytes as f64),
+            kb(self.resent_bytes as f64),
             kb(self.total_wire_bytes as f64),
             self.framing_overhead_bytes_per_message,
             kb(self.raw_image_equivalent_bytes as f64)
@@ -401,5 +418,106 @@ impl BwReport {
             let _ = writeln!(s, "\ndropped incoming messages: {:?}", self.dropped);
         }
         s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ledger::Ledger;
+
+    #[test]
+    fn each_message_counts_once_by_its_sender_and_resends_apart() {
+        let mut a = Ledger::new("a", "t", 1, 1000);
+        let mut b = Ledger::new("b", "t", 1, 1000);
+        a.rendezvous_started("b", 0, 0);
+        // a sends two batches of 10 descriptors, one of them twice.
+        a.record(
+            Direction::Sent,
+            "b",
+            Some(0),
+            "descriptors",
+            1350,
+            10,
+            false,
+        );
+        a.record(
+            Direction::Sent,
+            "b",
+            Some(0),
+            "descriptors",
+            1350,
+            10,
+            false,
+        );
+        a.record(Direction::Sent, "b", Some(0), "descriptors", 1350, 10, true);
+        b.record(
+            Direction::Received,
+            "a",
+            Some(0),
+            "descriptors",
+            1350,
+            10,
+            false,
+        );
+        b.record(
+            Direction::Received,
+            "a",
+            Some(0),
+            "descriptors",
+            1350,
+            10,
+            false,
+        );
+        // b answers 4 pairs with 2 packets.
+        b.record(Direction::Sent, "a", Some(0), "matches", 40, 4, false);
+        b.record(
+            Direction::Sent,
+            "a",
+            Some(0),
+            "verification_features",
+            4200,
+            100,
+            false,
+        );
+        b.record(
+            Direction::Sent,
+            "a",
+            Some(0),
+            "verification_features",
+            4200,
+            100,
+            false,
+        );
+        b.record(
+            Direction::Sent,
+            "a",
+            Some(0),
+            "pose_estimates",
+            100,
+            3,
+            false,
+        );
+        let both = [
+            (PathBuf::from("a/ledger.json"), a.to_file()),
+            (PathBuf::from("b/ledger.json"), b.to_file()),
+        ];
+        let r = report(&both);
+        assert_eq!(r.per_kind.descriptor.count, 20);
+        assert_eq!(r.per_kind.descriptor.bytes, 2700);
+        assert_eq!(r.per_kind.descriptor.avg_bytes, 135.0);
+        assert_eq!(r.per_kind.descriptor.resent_bytes, 1350);
+        assert_eq!(r.per_kind.verification_features.count, 4);
+        assert_eq!(r.per_kind.verification_features.avg_bytes, 2100.0);
+        assert_eq!(r.per_kind.pose_estimate.count, 3);
+        assert_eq!(r.per_kind.backend.messages, 1);
+        assert_eq!(r.total_bytes, 3 * 1350 + 40 + 8400 + 100);
+        assert_eq!(r.resent_bytes, 1350);
+        assert_eq!(r.raw_image_equivalent_bytes, 1000 * (20 + 4));
+        assert_eq!(r.per_peer["a"]["b"].bytes_sent, 3 * 1350);
+        // Alone, b's ledger still counts what it received from a (a's own is missing).
+        let r = report(&both[1..]);
+        assert_eq!(r.per_kind.descriptor.count, 20);
+        assert_eq!(r.total_bytes, 2 * 1350 + 40 + 8400 + 100);
     }
 }

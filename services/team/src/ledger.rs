@@ -47,6 +47,13 @@ pub struct Counts {
     /// What the messages carry: descriptors, pairs, features, closures, pose estimates
     /// (1 per message for the other kinds).
     pub items: u64,
+    /// Of the above, resends of unacknowledged messages (sent direction only).
+    #[serde(default)]
+    pub resent_messages: u64,
+    #[serde(default)]
+    pub resent_payload_bytes: u64,
+    #[serde(default)]
+    pub resent_items: u64,
 }
 
 /// One row of `ledger.json`'s `traffic`.
@@ -151,7 +158,8 @@ impl Ledger {
         }
     }
 
-    /// Counts one message sent or received.
+    /// Counts one message sent or received (`resend`: a resend of an unacknowledged one).
+    #[allow(clippy::too_many_arguments)]
     pub fn record(
         &mut self,
         direction: Direction,
@@ -160,6 +168,7 @@ impl Ledger {
         kind: &str,
         payload_bytes: usize,
         items: u64,
+        resend: bool,
     ) {
         let c = self
             .traffic
@@ -169,6 +178,11 @@ impl Ledger {
         c.payload_bytes += payload_bytes as u64;
         c.wire_bytes += payload_bytes as u64 + self.framing_bytes;
         c.items += items;
+        if resend {
+            c.resent_messages += 1;
+            c.resent_payload_bytes += payload_bytes as u64;
+            c.resent_items += items;
+        }
     }
 
     /// Counts one incoming message that was dropped.
@@ -210,6 +224,9 @@ impl Ledger {
                 t.payload_bytes += c.payload_bytes;
                 t.wire_bytes += c.wire_bytes;
                 t.items += c.items;
+                t.resent_messages += c.resent_messages;
+                t.resent_payload_bytes += c.resent_payload_bytes;
+                t.resent_items += c.resent_items;
             }
         }
         t

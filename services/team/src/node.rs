@@ -181,6 +181,7 @@ impl Node {
             kind,
             bytes.len(),
             items(&msg.body),
+            false,
         );
         let Some(session) = self.sessions.get_mut(&from) else {
             return;
@@ -210,7 +211,8 @@ impl Node {
                 continue;
             }
             let rendezvous = session.stats().meetings - 1;
-            for msg in session.poll(now_ms, &mut svc) {
+            for out in session.poll(now_ms, &mut svc) {
+                let msg = out.message;
                 let bytes = match msg.encode() {
                     Ok(b) => b,
                     Err(e) => {
@@ -233,6 +235,7 @@ impl Node {
                     msg.kind().name(),
                     bytes.len(),
                     items(&msg.body),
+                    out.resend,
                 );
             }
         }

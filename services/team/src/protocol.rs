@@ -96,6 +96,13 @@ pub struct Services<'a> {
     pub backend: &'a mut dyn BackendExchange,
 }
 
+/// One message to send, and whether it is a resend (counted apart by the ledger).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Outgoing {
+    pub message: Message,
+    pub resend: bool,
+}
+
 /// Who does what in a pair: the robot with the smaller id initiates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Role {
@@ -259,7 +266,9 @@ impl Received {
 #[derive(Debug, Clone)]
 struct Pending {
     body: Body,
+    /// None: due now (new, or the start of a meeting).
     last_sent_ms: Option<u64>,
+    sends: u32,
 }
 
 /// Unacknowledged messages of one kind, by sequence.
@@ -391,6 +400,7 @@ impl PeerSession {
             Pending {
                 body,
                 last_sent_ms: None,
+                sends: 0,
             },
         );
         outbox.next_seq += 1;
@@ -406,7 +416,7 @@ impl PeerSession {
 
     /// Messages to send now: new protocol steps, acknowledgments, and resends of what is
     /// unacknowledged after `retransmit_ms`. Nothing while the peer is away.
-    pub fn poll(&mut self, now_ms: u64, svc: &mut Services<'_>) -> Vec<Message> {
+    pub fn poll(&mut self, now_ms: u64, svc: &mut Services<'_>) -> Vec<Outgoing> {
         let mut out = Vec::new();
         if !self.connected {
             return out;
@@ -435,7 +445,10 @@ impl PeerSession {
                     next: r.next,
                     received: r.ranges(),
                 };
-                out.push(Message::new(self.header(self.ack_sequence), ack));
+                out.push(Outgoing {
+                    message: Message::new(self.header(self.ack_sequence), ack),
+                    resend: false,
+                });
                 self.ack_sequence += 1;
             }
         }
@@ -449,17 +462,20 @@ impl PeerSession {
                     Some(t) => now_ms.saturating_sub(t) >= retransmit,
                 };
                 if due {
-                    if p.last_sent_ms.is_some() {
-                        resent += 1;
-                    }
+                    let resend = p.sends > 0;
+                    resent += u64::from(resend);
+                    p.sends = p.sends.saturating_add(1);
                     p.last_sent_ms = Some(now_ms);
-                    emitted.push((seq, p.body.clone()));
+                    emitted.push((seq, p.body.clone(), resend));
                 }
             }
         }
         self.stats.retransmissions += resent;
-        for (seq, body) in emitted {
-            out.push(Message::new(self.header(seq), body));
+        for (seq, body, resend) in emitted {
+            out.push(Outgoing {
+                message: Message::new(self.header(seq), body),
+                resend,
+            });
         }
         self.stats.messages_sent += out.len() as u64;
         out

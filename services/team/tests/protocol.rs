@@ -294,6 +294,16 @@ fn unknown_garbage_wrong_sender_and_replayed_messages_are_dropped_and_counted() 
     bus.inject(&idb, &ida, "hello", hello(&c));
     // A replay of a's first descriptor batch.
     bus.inject(&idb, &ida, "descriptors", first_batch.clone());
+    // A message of an epoch older than the one a is in (a replay from before a restart).
+    let old = Message::new(
+        Header {
+            sender: ida.clone(),
+            epoch: 0,
+            sequence: 99,
+        },
+        Hello { robot: 0 },
+    );
+    bus.inject(&idb, &ida, "hello", old.encode().unwrap());
     // A message under the wrong kind in its key.
     bus.inject(&idb, &ida, "matches", first_batch);
     run(&mut [&mut a, &mut b], &mut now, 3);
@@ -303,6 +313,7 @@ fn unknown_garbage_wrong_sender_and_replayed_messages_are_dropped_and_counted() 
     assert_eq!(ledger.dropped_count("wrong_sender"), 1);
     assert_eq!(ledger.dropped_count("wrong_kind"), 1);
     assert!(ledger.dropped_count("duplicate") >= 1);
+    assert_eq!(ledger.dropped_count("stale_epoch"), 1);
     drop(ledger);
     let sb = b.node.session(&ida).unwrap().stats().clone();
     assert_eq!(sb.descriptors_delivered, 40);
