@@ -40,12 +40,13 @@ struct Net {
 }
 
 impl Net {
-    fn new() -> Result<Net, String> {
+    /// `tag`: one letter per test of this file (they run in parallel).
+    fn new(tag: char) -> Result<Net, String> {
         let id = std::process::id() % 100_000;
         let net = Net {
-            ns: [format!("dst{id}a"), format!("dst{id}b")],
-            bridge: format!("dsbr{id}"),
-            veth: [format!("dsa{id}"), format!("dsb{id}")],
+            ns: [format!("dst{id}{tag}a"), format!("dst{id}{tag}b")],
+            bridge: format!("dsbr{id}{tag}"),
+            veth: [format!("ds{tag}a{id}"), format!("ds{tag}b{id}")],
             addr: ["10.213.7.1".into(), "10.213.7.2".into()],
             children: Vec::new(),
         };
@@ -96,6 +97,51 @@ impl Net {
         Ok(())
     }
 
+    /// Radio-like link: every interface capped at `kbit` (tc tbf) and each robot dropping
+    /// `loss_percent` of the packets from the other at random (nftables numgen).
+    fn radio(&self, kbit: u32, loss_percent: u32) -> Result<(), String> {
+        for i in 0..2 {
+            let rate = format!("{kbit}kbit");
+            sh(&[
+                "ip",
+                "netns",
+                "exec",
+                &self.ns[i],
+                "tc",
+                "qdisc",
+                "add",
+                "dev",
+                &self.veth[i],
+                "root",
+                "tbf",
+                "rate",
+                &rate,
+                "burst",
+                "4kb",
+                "latency",
+                "400ms",
+            ])?;
+            let rules = format!(
+                "add table inet dsloss; \
+                 add chain inet dsloss in {{ type filter hook input priority 0; }}; \
+                 add rule inet dsloss in ip saddr {peer} numgen random mod 100 < {loss_percent} drop",
+                peer = self.addr[1 - i]
+            );
+            sh(&["ip", "netns", "exec", &self.ns[i], "nft", &rules])?;
+        }
+        Ok(())
+    }
+
+    /// The loss ends (the cap stays).
+    fn clear_loss(&self) -> Result<(), String> {
+        for ns in &self.ns {
+            sh(&[
+                "ip", "netns", "exec", ns, "nft", "delete", "table", "inet", "dsloss",
+            ])?;
+        }
+        Ok(())
+    }
+
     fn tx_bytes(&self, i: usize) -> u64 {
         let path = format!("/sys/class/net/{}/statistics/tx_bytes", self.veth[i]);
         sh(&["ip", "netns", "exec", &self.ns[i], "cat", &path])
@@ -118,7 +164,30 @@ impl Drop for Net {
     }
 }
 
-fn config(dir: &Path, robot: &str, index: u32, team: &str, listen: &str, connect: &str) -> PathBuf {
+/// What a test's robots run with.
+struct Params {
+    lease_ms: u64,
+    keyframes: u64,
+    keyframe_interval_ms: u64,
+    features: usize,
+}
+
+const ACCEPTANCE: Params = Params {
+    lease_ms: 1500,
+    keyframes: 300,
+    keyframe_interval_ms: 20,
+    features: 100,
+};
+
+fn config(
+    dir: &Path,
+    robot: &str,
+    index: u32,
+    team: &str,
+    listen: &str,
+    connect: &str,
+    p: &Params,
+) -> PathBuf {
     let path = dir.join(format!("{robot}.toml"));
     let connect = if connect.is_empty() {
         String::new()
@@ -135,17 +204,21 @@ name = "{team}"
 listen = ["{listen}"]
 connect = [{connect}]
 multicast_scouting = false
-lease_ms = 1500
+lease_ms = {lease}
 retransmit_ms = 300
 write_every_ms = 200
 run_dir = "{run}"
 
 [team.standin]
-keyframes = 300
-keyframe_interval_ms = 20
-features_per_keyframe = 100
+keyframes = {keyframes}
+keyframe_interval_ms = {interval}
+features_per_keyframe = {features}
 "#,
-        run = dir.join("run").display()
+        run = dir.join("run").display(),
+        lease = p.lease_ms,
+        keyframes = p.keyframes,
+        interval = p.keyframe_interval_ms,
+        features = p.features,
     );
     std::fs::write(&path, text).unwrap();
     path
@@ -180,8 +253,7 @@ fn present(dir: &Path, robot: &str) -> bool {
         .unwrap_or(false)
 }
 
-#[test]
-fn two_robots_in_network_namespaces_meet_are_cut_off_and_meet_again() {
+fn require_root_and_tools() {
     assert!(
         unsafe { libc::geteuid() } == 0,
         "this test needs root: it puts each robot in its own network namespace (run the tests as root, as CI does)"
@@ -193,14 +265,13 @@ fn two_robots_in_network_namespaces_meet_are_cut_off_and_meet_again() {
             tool[0]
         );
     }
-    let net = Net::new().unwrap_or_else(|e| panic!("network namespaces: {e}"));
-    let mut net = net;
-    let dir = tempfile::tempdir().unwrap();
-    let d = dir.path();
-    let team = format!("ns{}", std::process::id());
+}
+
+/// Starts robot a (listening) and b (connecting to a), each in its namespace.
+fn start_robots(net: &mut Net, d: &Path, team: &str, p: &Params) {
     let ep = |i: usize| format!("tcp/{}:7447", net.addr[i]);
-    let ca = config(d, "a", 0, &team, &ep(0), "");
-    let cb = config(d, "b", 1, &team, &ep(1), &ep(0));
+    let ca = config(d, "a", 0, team, &ep(0), "", p);
+    let cb = config(d, "b", 1, team, &ep(1), &ep(0), p);
     let bin = env!("CARGO_BIN_EXE_doorslam");
     for (i, cfg) in [(0, &ca), (1, &cb)] {
         let log = std::fs::File::create(d.join(format!("robot{i}.log"))).unwrap();
@@ -216,12 +287,24 @@ fn two_robots_in_network_namespaces_meet_are_cut_off_and_meet_again() {
             .unwrap();
         net.children.push(child);
     }
-    let logs = || {
-        (0..2)
-            .map(|i| std::fs::read_to_string(d.join(format!("robot{i}.log"))).unwrap_or_default())
-            .collect::<Vec<_>>()
-            .join("\n---\n")
-    };
+}
+
+fn logs(d: &Path) -> String {
+    (0..2)
+        .map(|i| std::fs::read_to_string(d.join(format!("robot{i}.log"))).unwrap_or_default())
+        .collect::<Vec<_>>()
+        .join("\n---\n")
+}
+
+#[test]
+fn two_robots_in_network_namespaces_meet_are_cut_off_and_meet_again() {
+    require_root_and_tools();
+    let mut net = Net::new('c').unwrap_or_else(|e| panic!("network namespaces: {e}"));
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let team = format!("nsc{}", std::process::id());
+    start_robots(&mut net, d, &team, &ACCEPTANCE);
+    let bin = env!("CARGO_BIN_EXE_doorslam");
 
     // First meeting, cut off mid-way through the descriptors.
     let limit = Duration::from_secs(30);
@@ -230,7 +313,7 @@ fn two_robots_in_network_namespaces_meet_are_cut_off_and_meet_again() {
         assert!(
             start.elapsed() < limit,
             "no descriptors delivered in 30 s:\n{}",
-            logs()
+            logs(d)
         );
         std::thread::sleep(Duration::from_millis(50));
     }
@@ -264,7 +347,7 @@ fn two_robots_in_network_namespaces_meet_are_cut_off_and_meet_again() {
             start.elapsed() < Duration::from_secs(60),
             "second meeting incomplete after 60 s (delivered {}):\n{}",
             delivered(d),
-            logs()
+            logs(d)
         );
         std::thread::sleep(Duration::from_millis(100));
     }
@@ -274,7 +357,7 @@ fn two_robots_in_network_namespaces_meet_are_cut_off_and_meet_again() {
     }
     for c in &mut net.children {
         let code = c.wait().unwrap();
-        assert!(code.success(), "robot exited with {code}:\n{}", logs());
+        assert!(code.success(), "robot exited with {code}:\n{}", logs(d));
     }
     net.children.clear();
 
@@ -370,4 +453,71 @@ fn two_robots_in_network_namespaces_meet_are_cut_off_and_meet_again() {
         .output()
         .unwrap();
     eprintln!("{}", String::from_utf8_lossy(&table.stdout));
+}
+
+/// The issue's radio target: with 30 % loss and a 250 kbit/s cap, every descriptor still
+/// arrives exactly once after the link clears.
+#[test]
+fn through_30_percent_loss_and_250_kbit_every_descriptor_arrives_once() {
+    require_root_and_tools();
+    let mut net = Net::new('r').unwrap_or_else(|e| panic!("network namespaces: {e}"));
+    net.radio(250, 30).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let team = format!("nsr{}", std::process::id());
+    let radio = Params {
+        lease_ms: 3000,
+        keyframes: 150,
+        keyframe_interval_ms: 50,
+        features: 50,
+    };
+    start_robots(&mut net, d, &team, &radio);
+    let start = Instant::now();
+    std::thread::sleep(Duration::from_secs(20));
+    let during_loss = delivered(d);
+    net.clear_loss().unwrap();
+    let cleared = Instant::now();
+    loop {
+        let done = delivered(d) == 150
+            && status(d, "a").is_some_and(|s| {
+                s["keyframes_created"] == 150 && s["peers"]["b"]["unacknowledged_messages"] == 0
+            });
+        if done {
+            break;
+        }
+        assert!(
+            cleared.elapsed() < Duration::from_secs(90),
+            "incomplete 90 s after the loss cleared (delivered {}):\n{}",
+            delivered(d),
+            logs(d)
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let after = cleared.elapsed();
+    for c in &net.children {
+        unsafe { libc::kill(c.id() as i32, libc::SIGTERM) };
+    }
+    for c in &mut net.children {
+        let code = c.wait().unwrap();
+        assert!(code.success(), "robot exited with {code}:\n{}", logs(d));
+    }
+    net.children.clear();
+    let sa = status(d, "a").unwrap();
+    let sb = status(d, "b").unwrap();
+    let keys: Vec<u64> = sb["peers"]["a"]["delivered_descriptors"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap())
+        .collect();
+    assert_eq!(keys, (0..150).collect::<Vec<u64>>());
+    assert_eq!(sb["peers"]["a"]["stats"]["descriptors_redelivered"], 0);
+    eprintln!(
+        "radio 250 kbit/s, 30 % loss: {during_loss} of 150 descriptors delivered in the 20 s of loss, all {} s after it cleared; meetings a {} b {}, a's retransmissions {}, total {} s",
+        after.as_secs_f64(),
+        sa["peers"]["b"]["stats"]["meetings"],
+        sb["peers"]["a"]["stats"]["meetings"],
+        sa["peers"]["b"]["stats"]["retransmissions"],
+        start.elapsed().as_secs_f64()
+    );
 }

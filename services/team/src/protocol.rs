@@ -457,9 +457,13 @@ impl PeerSession {
         let mut emitted = Vec::new();
         for outbox in self.outboxes.values_mut() {
             for (&seq, p) in outbox.pending.iter_mut() {
+                // Exponential back-off (×2 per resend, up to ×16): on a slow radio an
+                // acknowledgment can take longer than `retransmit_ms`, and resending at a
+                // fixed rate would fill the link with copies.
+                let wait = retransmit << p.sends.saturating_sub(1).min(4);
                 let due = match p.last_sent_ms {
                     None => true,
-                    Some(t) => now_ms.saturating_sub(t) >= retransmit,
+                    Some(t) => now_ms.saturating_sub(t) >= wait,
                 };
                 if due {
                     let resend = p.sends > 0;
