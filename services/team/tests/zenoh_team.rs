@@ -121,3 +121,96 @@ fn two_zenoh_peers_discover_each_other_and_complete_a_rendezvous() {
     }
     la.close().unwrap();
 }
+
+/// The clean-link rate target, on loopback (one process, two sessions): 1,000
+/// descriptor messages per second for 5 s, paced, through `ZenohLink`; none may be lost.
+#[test]
+fn a_thousand_descriptor_messages_per_second_arrive_without_loss() {
+    use doorslam_ipc::wire::{Descriptor, Descriptors, Header, Kind, Message};
+    use doorslam_team::{Link, LinkEvent};
+    let team = format!("zr{}", std::process::id());
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let open = |id: &str, listen: Vec<String>, connect: Vec<String>| {
+        ZenohLink::open(&ZenohLinkConfig {
+            team: team.clone(),
+            me: RobotId::new(id).unwrap(),
+            link: LinkConfig {
+                listen,
+                connect,
+                multicast_scouting: false,
+            },
+            lease_ms: None,
+        })
+        .unwrap()
+    };
+    let mut la = open("a", vec![endpoint.clone()], vec![]);
+    let mut lb = open("b", vec![], vec![endpoint]);
+    let idb = RobotId::new("b").unwrap();
+    // Wait until each sees the other's token (routes are up).
+    let start = Instant::now();
+    while !la
+        .poll_events(Duration::from_millis(20))
+        .iter()
+        .any(|e| matches!(e, LinkEvent::PeerAppeared(p) if *p == idb))
+    {
+        assert!(start.elapsed() < Duration::from_secs(10), "no discovery");
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    let _ = lb.poll_events(Duration::ZERO);
+    let n = 5000u64;
+    let world = SimWorld::default();
+    let values = world.descriptor(0, 0);
+    let messages: Vec<Vec<u8>> = (0..n)
+        .map(|i| {
+            let key = doorslam_geometry::key::symbol(0, i).unwrap();
+            Message::new(
+                Header {
+                    sender: RobotId::new("a").unwrap(),
+                    epoch: 1,
+                    sequence: i,
+                },
+                Descriptors {
+                    robot: 0,
+                    keyframes: i..i + 1,
+                    descriptors: vec![Descriptor::quantize(key, &values).unwrap()],
+                },
+            )
+            .encode()
+            .unwrap()
+        })
+        .collect();
+    let mut received = std::collections::BTreeSet::new();
+    let t0 = Instant::now();
+    for (i, m) in messages.iter().enumerate() {
+        // Paced at 1 ms per message.
+        let due = t0 + Duration::from_micros(1000 * i as u64);
+        while Instant::now() < due {
+            for e in lb.poll_events(Duration::ZERO) {
+                if let LinkEvent::Message { bytes, .. } = e {
+                    received.insert(Message::decode(&bytes).unwrap().header.sequence);
+                }
+            }
+            std::thread::yield_now();
+        }
+        la.publish(&idb, Kind::Descriptors, m).unwrap();
+    }
+    let sent_s = t0.elapsed().as_secs_f64();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while (received.len() as u64) < n && Instant::now() < deadline {
+        for e in lb.poll_events(Duration::from_millis(20)) {
+            if let LinkEvent::Message { bytes, .. } = e {
+                received.insert(Message::decode(&bytes).unwrap().header.sequence);
+            }
+        }
+    }
+    eprintln!(
+        "{n} descriptor messages of {} B sent in {sent_s:.2} s ({:.0}/s), {} received",
+        messages[0].len(),
+        n as f64 / sent_s,
+        received.len()
+    );
+    assert!(n as f64 / sent_s >= 950.0, "could not send at 1000/s");
+    assert_eq!(received.len() as u64, n, "messages lost on a clean link");
+    la.close().unwrap();
+    lb.close().unwrap();
+}
