@@ -21,6 +21,8 @@ pub struct RobotConfig {
     pub sim_keyframes: SimKeyframesSection,
     #[serde(default)]
     pub up: UpSection,
+    #[serde(default)]
+    pub team: doorslam_team::runner::TeamSection,
 }
 
 /// `[sim_keyframes]`: the simulation stand-in for the front-end (never visual odometry).
@@ -123,6 +125,7 @@ impl RobotConfig {
         }
         self.camera.validate()?;
         self.backend.validate()?;
+        self.team.validate()?;
         if self.sim_keyframes.every == 0 {
             bail!("sim_keyframes.every must be >= 1");
         }

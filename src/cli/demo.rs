@@ -136,7 +136,12 @@ pub fn run(args: DemoArgs) -> Result<()> {
     };
     let a = doorslam_team::open_peer(&link(vec![endpoint.clone()], vec![]))?;
     let b = doorslam_team::open_peer(&link(vec![], vec![endpoint]))?;
-    let key = doorslam_team::key_expr(&format!("b{}", std::process::id()), "descriptor", "a")?;
+    let key = doorslam_team::key_expr(
+        "demo",
+        &format!("b{}", std::process::id()),
+        "descriptor",
+        "a",
+    )?;
     let sub = b
         .declare_subscriber(&key)
         .wait()

@@ -1,11 +1,11 @@
 //! Subcommands, one file each.
 
 mod bench;
+mod bw;
 mod demo;
 mod dpgo;
 mod eval;
 mod pcm;
-mod pending;
 mod pgo;
 mod replay;
 mod service;
@@ -47,7 +47,7 @@ pub enum Command {
     /// Replay a dataset (KITTI / EuRoC layout) into the on-robot pipeline.
     Replay(replay::ReplayArgs),
     /// Measure what each inter-robot message kind costs in bytes.
-    Bw(pending::PendingArgs),
+    Bw(bw::BwArgs),
     /// Run the demo (today: a check of the whole dependency stack on real data).
     Demo(demo::DemoArgs),
     /// Measure the on-robot transports (iceoryx2, Zenoh shared memory, Unix socket).
@@ -77,7 +77,7 @@ pub fn main() -> ExitCode {
         Command::Sim(args) => sim::run(args),
         Command::Vo(args) => vo::run(args),
         Command::Replay(args) => replay::run(args),
-        Command::Bw(args) => pending::fail("bw", "the team-link issue (next wave)", &args),
+        Command::Bw(args) => bw::run(args),
         Command::Demo(args) => demo::run(args),
         Command::Bench(args) => bench::run(args),
     };

@@ -59,7 +59,14 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             Ok(())
         }
         ServiceName::Team => {
-            bail!("service team is not built yet: it arrives with the team-link issue (next wave)")
+            // Stopped by SIGTERM/SIGINT: the ledger and status are written on the way out.
+            let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+            let flag = stop.clone();
+            ctrlc::set_handler(move || flag.store(true, std::sync::atomic::Ordering::SeqCst))?;
+            let index = u8::try_from(config.robot.index)?;
+            let status = doorslam_team::runner::run(&config.team, &config.robot.id, index, &stop)?;
+            tracing::info!(published_bytes = status.published_bytes, "team: done");
+            Ok(())
         }
     }
 }

@@ -2,14 +2,33 @@
 //!
 //! The link between robots: Zenoh in peer-to-peer mode. Only compact, versioned messages
 //! cross it (descriptors, keypoints for verification, relative poses, separator
-//! estimates), and every byte goes through the bandwidth ledger (next wave).
+//! estimates), and every byte goes through the bandwidth ledger.
 //!
-//! Landed so far: [`link`], opening a peer session from a typed config and the key
-//! expressions robots publish under.
+//! - [`link`]: Zenoh sessions and every key expression the team uses (the table is there).
+//! - [`protocol`]: the rendezvous protocol with one peer as a pure state machine, and the
+//!   traits it calls into ([`DescriptorSource`], [`Verifier`], [`BackendExchange`]).
+//! - [`node`]: one robot's end, over any [`Link`]; checks every incoming message (known
+//!   peer, decodes, sender), counts it in the [`ledger`], routes it to its peer's session.
+//! - [`zenoh_link`]: the [`Link`] over Zenoh, with discovery by liveliness tokens.
+//! - [`emulate`]: an in-process [`Link`] with loss and cuts, for tests.
+//! - [`standin`]: simulated descriptors, a truth-table verifier, back-end stand-ins.
+//! - [`bw`]: the bandwidth report (`doorslam bw`) from ledger files.
+//! - [`runner`]: `doorslam service team` with the stand-ins.
 
+pub mod bw;
+pub mod emulate;
+pub mod ledger;
 pub mod link;
+pub mod node;
+pub mod protocol;
+pub mod runner;
+pub mod standin;
+pub mod zenoh_link;
 
+pub use ledger::{Ledger, LedgerHandle};
 pub use link::{key_expr, open_peer, LinkConfig, TeamError};
+pub use node::{Link, LinkEvent, Node, Pieces};
+pub use protocol::{BackendExchange, BackendRefusal, DescriptorSource, Identity, Verifier};
 
 /// Re-exported so callers use the exact Zenoh this crate was built against.
 pub use zenoh;

@@ -1,4 +1,18 @@
-//! Zenoh peer sessions and key expressions.
+//! Zenoh peer sessions and the key expressions robots publish under.
+//!
+//! # Key expressions (the only ones the team link uses)
+//!
+//! | key expression | what | who declares it |
+//! |---|---|---|
+//! | `doorslam/<team>/alive/<robot>` | liveliness token: present while `<robot>`'s team link runs | each robot, once |
+//! | `doorslam/<team>/alive/*` | liveliness subscriber (with history): token put = peer appeared, delete = peer left | each robot |
+//! | `doorslam/<team>/<to>/<kind>/<from>` | one wire message from `<from>` to `<to>`; `<kind>` is `Kind::name()` (`hello`, `descriptors`, `matches`, `verification_features`, `loop_closures`, `pose_estimates`, `ack`, ...) | a publisher per (peer, kind) |
+//! | `doorslam/<team>/<me>/*/*` | subscriber of everything addressed to `<me>` | each robot |
+//!
+//! `<team>`, `<to>` and `<from>` follow the wire header's robot-id rule (1-32 characters of
+//! `[a-z0-9_-]`), so no id can contain `/`, `*` or `$` and change what a pattern matches.
+//! Liveliness keys have four chunks and message keys five, so the two never overlap even
+//! for a robot called `alive`.
 
 use doorslam_ipc::wire::RobotId;
 use zenoh::{Session, Wait};
@@ -16,8 +30,12 @@ pub enum TeamError {
     },
     #[error("invalid robot id {0:?}: use 1-32 characters of [a-z0-9_-]")]
     RobotId(String),
+    #[error("invalid team name {0:?}: use 1-32 characters of [a-z0-9_-]")]
+    Team(String),
     #[error("invalid message kind {0:?} in a key expression: use [a-z0-9_-]+")]
     Kind(String),
+    #[error("zenoh {what}: {reason}")]
+    Zenoh { what: &'static str, reason: String },
 }
 
 /// How one robot joins the team network.
@@ -39,6 +57,15 @@ fn json_list(items: &[String]) -> String {
 
 /// Opens a Zenoh session in peer mode.
 pub fn open_peer(link: &LinkConfig) -> Result<Session, TeamError> {
+    open_peer_with_lease(link, None)
+}
+
+/// Opens a Zenoh session in peer mode; `lease_ms` (Zenoh's default: 10 s) is how long a
+/// silent link lives before the peer is declared gone (its liveliness token deleted).
+pub fn open_peer_with_lease(
+    link: &LinkConfig,
+    lease_ms: Option<u64>,
+) -> Result<Session, TeamError> {
     let mut config = zenoh::Config::default();
     let mut set = |key: &'static str, value: String| {
         config
@@ -55,6 +82,13 @@ pub fn open_peer(link: &LinkConfig) -> Result<Session, TeamError> {
         "scouting/multicast/enabled",
         link.multicast_scouting.to_string(),
     )?;
+    // Between robots every byte crosses the radio: no shared-memory shortcut for large
+    // payloads even when two robots' processes share a host (tests, HIL), or the ledger's
+    // framing and the bytes on the link would not be what a real link carries.
+    set("transport/shared_memory/enabled", "false".into())?;
+    if let Some(lease) = lease_ms {
+        set("transport/link/tx/lease", lease.to_string())?;
+    }
     zenoh::open(config).wait().map_err(|e| TeamError::Open {
         listen: link.listen.clone(),
         connect: link.connect.clone(),
@@ -62,12 +96,31 @@ pub fn open_peer(link: &LinkConfig) -> Result<Session, TeamError> {
     })
 }
 
-/// The one place key expressions are built: `doorslam/<to>/<kind>/<from>`, so a robot
-/// subscribes to `doorslam/<me>/**` and sees who sent what.
-pub fn key_expr(to: &str, kind: &str, from: &str) -> Result<String, TeamError> {
+fn check_id(id: &str) -> Result<(), TeamError> {
     // Robot ids follow the rule of the id in every wire header (one definition).
+    RobotId::new(id)
+        .map(|_| ())
+        .map_err(|_| TeamError::RobotId(id.to_string()))
+}
+
+fn check_team(team: &str) -> Result<(), TeamError> {
+    RobotId::new(team)
+        .map(|_| ())
+        .map_err(|_| TeamError::Team(team.to_string()))
+}
+
+/// A team name: the robot-id rule, checked once.
+pub fn team_name(team: &str) -> Result<String, TeamError> {
+    check_team(team)?;
+    Ok(team.to_string())
+}
+
+/// The key expression of one message: `doorslam/<team>/<to>/<kind>/<from>`, so a robot
+/// subscribes to `doorslam/<team>/<me>/*/*` and sees who sent what.
+pub fn key_expr(team: &str, to: &str, kind: &str, from: &str) -> Result<String, TeamError> {
+    check_team(team)?;
     for id in [to, from] {
-        RobotId::new(id).map_err(|_| TeamError::RobotId(id.to_string()))?;
+        check_id(id)?;
     }
     let kind_ok = !kind.is_empty()
         && kind
@@ -76,5 +129,63 @@ pub fn key_expr(to: &str, kind: &str, from: &str) -> Result<String, TeamError> {
     if !kind_ok {
         return Err(TeamError::Kind(kind.to_string()));
     }
-    Ok(format!("doorslam/{to}/{kind}/{from}"))
+    Ok(format!("doorslam/{team}/{to}/{kind}/{from}"))
+}
+
+/// Everything addressed to `me`: `doorslam/<team>/<me>/*/*`.
+pub fn inbox_expr(team: &str, me: &str) -> Result<String, TeamError> {
+    check_team(team)?;
+    check_id(me)?;
+    Ok(format!("doorslam/{team}/{me}/*/*"))
+}
+
+/// The liveliness token of `robot`: `doorslam/<team>/alive/<robot>`.
+pub fn alive_expr(team: &str, robot: &str) -> Result<String, TeamError> {
+    check_team(team)?;
+    check_id(robot)?;
+    Ok(format!("doorslam/{team}/alive/{robot}"))
+}
+
+/// The liveliness tokens of the whole team: `doorslam/<team>/alive/*`.
+pub fn alive_pattern(team: &str) -> Result<String, TeamError> {
+    check_team(team)?;
+    Ok(format!("doorslam/{team}/alive/*"))
+}
+
+/// The robot a liveliness key names, if it is `doorslam/<team>/alive/<robot>` with a valid id.
+pub fn parse_alive(team: &str, key: &str) -> Option<RobotId> {
+    let rest = key.strip_prefix("doorslam/")?.strip_prefix(team)?;
+    let robot = rest.strip_prefix("/alive/")?;
+    RobotId::new(robot).ok()
+}
+
+/// `(kind, from)` of a message key `doorslam/<team>/<me>/<kind>/<from>`, if it has that form.
+pub fn parse_message_key<'k>(team: &str, me: &str, key: &'k str) -> Option<(&'k str, RobotId)> {
+    let rest = key.strip_prefix("doorslam/")?.strip_prefix(team)?;
+    let rest = rest
+        .strip_prefix('/')?
+        .strip_prefix(me)?
+        .strip_prefix('/')?;
+    let (kind, from) = rest.split_once('/')?;
+    Some((kind, RobotId::new(from).ok()?))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_round_trip_and_refuse_bad_ids() {
+        let k = key_expr("t1", "b", "descriptors", "a").unwrap();
+        assert_eq!(k, "doorslam/t1/b/descriptors/a");
+        let (kind, from) = parse_message_key("t1", "b", &k).unwrap();
+        assert_eq!((kind, from.as_str()), ("descriptors", "a"));
+        assert!(parse_message_key("t1", "c", &k).is_none());
+        assert!(parse_message_key("t", "b", &k).is_none());
+        let alive = alive_expr("t1", "a").unwrap();
+        assert_eq!(parse_alive("t1", &alive).unwrap().as_str(), "a");
+        assert!(parse_alive("t1", "doorslam/t1/alive/A").is_none());
+        assert!(key_expr("t/x", "b", "hello", "a").is_err());
+        assert!(inbox_expr("t", "*").is_err());
+    }
 }

@@ -31,9 +31,9 @@ fn two_peers_exchange_a_message_over_loopback() {
 
     // Unique per process so parallel test runs on one machine never cross.
     let to = format!("b{}", std::process::id());
-    let key = key_expr(&to, "hello", "a").unwrap();
+    let key = key_expr("loopback", &to, "hello", "a").unwrap();
     let sub = beta
-        .declare_subscriber(format!("doorslam/{to}/**"))
+        .declare_subscriber(format!("doorslam/loopback/{to}/**"))
         .wait()
         .unwrap();
 
@@ -66,15 +66,15 @@ fn bad_endpoints_and_ids_are_clear_errors() {
     })
     .unwrap_err();
     assert!(err.to_string().contains("nonsense"), "{err}");
-    assert!(key_expr("B/../x", "hello", "a")
+    assert!(key_expr("t", "B/../x", "hello", "a")
         .unwrap_err()
         .to_string()
         .contains("B/../x"));
     // The wire header's id rule: at most 32 characters.
     let long = "a".repeat(33);
-    assert!(key_expr("b", "hello", &long).is_err());
-    assert!(key_expr("b", "hello", &"a".repeat(32)).is_ok());
-    assert!(key_expr("b", "he/llo", "a")
+    assert!(key_expr("t", "b", "hello", &long).is_err());
+    assert!(key_expr("t", "b", "hello", &"a".repeat(32)).is_ok());
+    assert!(key_expr("t", "b", "he/llo", "a")
         .unwrap_err()
         .to_string()
         .contains("kind"));

@@ -1,0 +1,251 @@
+//! One robot's end of the team link, independent of the transport: discovery events and
+//! raw messages come in through a [`Link`] (Zenoh: [`crate::zenoh_link::ZenohLink`];
+//! in-process emulation with loss and cuts: [`crate::emulate::EmulatedLink`]), go through
+//! the checks every message from another robot gets (known peer, decodes, the key's sender
+//! is the header's), the [`Ledger`], and one [`PeerSession`] per peer.
+
+use std::collections::BTreeMap;
+
+use doorslam_ipc::wire::{Kind, Message, RobotId};
+
+use crate::ledger::{items, Direction, LedgerHandle};
+use crate::protocol::{
+    BackendExchange, DescriptorSource, Identity, PeerSession, ProtocolConfig, Services, Verifier,
+};
+
+/// What a link reports.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum LinkEvent {
+    /// The peer's liveliness token appeared: a rendezvous starts.
+    PeerAppeared(RobotId),
+    /// The peer's token disappeared (it left radio range or stopped).
+    PeerLeft(RobotId),
+    /// Bytes published to this robot; `from` and `kind` as the key expression names them.
+    Message {
+        from: RobotId,
+        kind: String,
+        bytes: Vec<u8>,
+    },
+    /// A sample under this robot's inbox whose key is not a message key.
+    Malformed { key: String, bytes: usize },
+}
+
+/// Failures of a link.
+#[derive(Debug, thiserror::Error)]
+pub enum LinkError {
+    #[error("publish {kind} to {to}: {reason}")]
+    Publish {
+        to: String,
+        kind: &'static str,
+        reason: String,
+    },
+}
+
+/// A transport between robots: Zenoh, or an in-process emulation with the same behaviour.
+pub trait Link {
+    /// Publishes one encoded message to `to` under `doorslam/<team>/<to>/<kind>/<me>`.
+    fn publish(&mut self, to: &RobotId, kind: Kind, bytes: &[u8]) -> Result<(), LinkError>;
+    /// Events since the last call, waiting at most `timeout` for the first.
+    fn poll_events(&mut self, timeout: std::time::Duration) -> Vec<LinkEvent>;
+}
+
+/// This robot's pieces the protocol calls into.
+pub struct Pieces {
+    pub place: Box<dyn DescriptorSource + Send>,
+    pub verifier: Box<dyn Verifier + Send>,
+    pub backend: Box<dyn BackendExchange + Send>,
+}
+
+/// One robot's team link state: every peer ever met, the present ones, the ledger.
+pub struct Node {
+    me: Identity,
+    config: ProtocolConfig,
+    sessions: BTreeMap<RobotId, PeerSession>,
+    ledger: LedgerHandle,
+    pieces: Pieces,
+    /// Messages whose encoding failed (our own bug, not the peer's): counted, never sent.
+    pub encode_failures: u64,
+    /// Publishes the link refused.
+    pub publish_failures: u64,
+}
+
+impl Node {
+    pub fn new(me: Identity, config: ProtocolConfig, ledger: LedgerHandle, pieces: Pieces) -> Self {
+        Self {
+            me,
+            config,
+            sessions: BTreeMap::new(),
+            ledger,
+            pieces,
+            encode_failures: 0,
+            publish_failures: 0,
+        }
+    }
+
+    pub fn identity(&self) -> &Identity {
+        &self.me
+    }
+
+    pub fn ledger(&self) -> &LedgerHandle {
+        &self.ledger
+    }
+
+    pub fn session(&self, peer: &RobotId) -> Option<&PeerSession> {
+        self.sessions.get(peer)
+    }
+
+    pub fn sessions(&self) -> impl Iterator<Item = &PeerSession> {
+        self.sessions.values()
+    }
+
+    pub fn pieces(&mut self) -> &mut Pieces {
+        &mut self.pieces
+    }
+
+    fn rendezvous(&self, peer: &RobotId) -> Option<u64> {
+        self.sessions
+            .get(peer)
+            .filter(|s| s.is_connected())
+            .map(|s| s.stats().meetings - 1)
+    }
+
+    /// Applies one link event at local time `now_ms`.
+    pub fn handle(&mut self, event: LinkEvent, now_ms: u64) {
+        match event {
+            LinkEvent::PeerAppeared(peer) => {
+                if peer == self.me.id {
+                    return;
+                }
+                let session = self.sessions.entry(peer.clone()).or_insert_with(|| {
+                    PeerSession::new(self.me.clone(), peer.clone(), self.config)
+                });
+                if session.is_connected() {
+                    return;
+                }
+                session.meeting_started();
+                let index = session.stats().meetings - 1;
+                tracing::info!(peer = %peer, rendezvous = index, "peer appeared");
+                self.ledger
+                    .lock()
+                    .rendezvous_started(peer.as_str(), index, now_ms);
+            }
+            LinkEvent::PeerLeft(peer) => {
+                if let Some(s) = self.sessions.get_mut(&peer) {
+                    if s.is_connected() {
+                        s.meeting_ended();
+                        tracing::info!(peer = %peer, "peer left");
+                        self.ledger.lock().rendezvous_ended(peer.as_str(), now_ms);
+                    }
+                }
+            }
+            LinkEvent::Malformed { key, bytes } => {
+                tracing::debug!(key, "sample with a malformed key dropped");
+                self.ledger.lock().dropped("?", "bad_key", bytes);
+            }
+            LinkEvent::Message { from, kind, bytes } => self.message(from, &kind, &bytes),
+        }
+    }
+
+    fn message(&mut self, from: RobotId, kind: &str, bytes: &[u8]) {
+        let drop = |node: &Self, reason: &str| {
+            node.ledger
+                .lock()
+                .dropped(from.as_str(), reason, bytes.len());
+        };
+        // Only peers whose token is present: a robot that never joined the team's
+        // liveliness (or left it) cannot inject.
+        let Some(rendezvous) = self.rendezvous(&from) else {
+            drop(self, "unknown_peer");
+            return;
+        };
+        let msg = match Message::decode(bytes) {
+            Ok(m) => m,
+            Err(e) => {
+                tracing::debug!(peer = %from, error = %e, "undecodable message dropped");
+                drop(self, "decode_error");
+                return;
+            }
+        };
+        if msg.header.sender != from {
+            drop(self, "wrong_sender");
+            return;
+        }
+        if msg.kind().name() != kind {
+            drop(self, "wrong_kind");
+            return;
+        }
+        self.ledger.lock().record(
+            Direction::Received,
+            from.as_str(),
+            Some(rendezvous),
+            kind,
+            bytes.len(),
+            items(&msg.body),
+            false,
+        );
+        let Some(session) = self.sessions.get_mut(&from) else {
+            return;
+        };
+        let mut svc = Services {
+            place: self.pieces.place.as_mut(),
+            verifier: self.pieces.verifier.as_mut(),
+            backend: self.pieces.backend.as_mut(),
+        };
+        if let Err(refusal) = session.receive(msg, &mut svc) {
+            tracing::debug!(peer = %from, %refusal, "message not processed");
+            self.ledger
+                .lock()
+                .dropped(from.as_str(), refusal.reason(), bytes.len());
+        }
+    }
+
+    /// Sends what every present peer's session has to send at local time `now_ms`.
+    pub fn flush(&mut self, link: &mut dyn Link, now_ms: u64) {
+        let mut svc = Services {
+            place: self.pieces.place.as_mut(),
+            verifier: self.pieces.verifier.as_mut(),
+            backend: self.pieces.backend.as_mut(),
+        };
+        for (peer, session) in self.sessions.iter_mut() {
+            if !session.is_connected() {
+                continue;
+            }
+            let rendezvous = session.stats().meetings - 1;
+            for out in session.poll(now_ms, &mut svc) {
+                let msg = out.message;
+                let bytes = match msg.encode() {
+                    Ok(b) => b,
+                    Err(e) => {
+                        tracing::error!(peer = %peer, kind = msg.kind().name(), error = %e, "own message does not encode");
+                        self.encode_failures += 1;
+                        continue;
+                    }
+                };
+                // Counted when handed to the link: what the ledger says was published is
+                // what was published (a failed publish is counted apart).
+                if let Err(e) = link.publish(peer, msg.kind(), &bytes) {
+                    tracing::warn!(error = %e, "publish failed");
+                    self.publish_failures += 1;
+                    continue;
+                }
+                self.ledger.lock().record(
+                    Direction::Sent,
+                    peer.as_str(),
+                    Some(rendezvous),
+                    msg.kind().name(),
+                    bytes.len(),
+                    items(&msg.body),
+                    out.resend,
+                );
+            }
+        }
+    }
+
+    /// One turn: take the link's events (waiting at most `timeout`), then send.
+    pub fn step(&mut self, link: &mut dyn Link, now_ms: u64, timeout: std::time::Duration) {
+        for event in link.poll_events(timeout) {
+            self.handle(event, now_ms);
+        }
+        self.flush(link, now_ms);
+    }
+}

@@ -1,0 +1,789 @@
+//! The rendezvous protocol with one peer, as a pure state machine: no Zenoh, no clock of its
+//! own (the caller passes its local monotonic time in milliseconds; no two robots' clocks
+//! are ever compared), no threads. [`crate::node::Node`] drives one [`PeerSession`] per
+//! discovered peer over any [`crate::node::Link`].
+//!
+//! For robots α < β (by robot id, [`Role`]), following the paper (§III-B, §III-C):
+//! 1. α sends β its place descriptors of keyframes it has not sent yet (all on the first
+//!    meeting), in batches that name the keyframe range they cover;
+//! 2. β matches each new descriptor against its own ([`DescriptorSource::match_descriptors`])
+//!    and replies with the putative [`Matches`] and, once per own keyframe, the
+//!    [`VerificationFeatures`] of that keyframe;
+//! 3. α verifies each pair ([`Verifier`]) and sends the accepted [`LoopClosures`]; both
+//!    hand them to their back-end ([`BackendExchange::loop_closures`]);
+//! 4. the back-end's rounds: whatever [`BackendExchange::messages_for`] returns is sent,
+//!    and every other kind received goes to [`BackendExchange::receive`].
+//!
+//! Reliability without clock agreement: every message but [`Ack`] is kept in a per-kind
+//! outbox under its sequence (per sender epoch, kind and destination) until the peer
+//! acknowledges it; unacknowledged messages are resent after `retransmit_ms` of local time
+//! and at once at the start of the next meeting. The receiver keeps, per peer epoch and
+//! kind, which sequences it processed (`next` + ranges beyond, what [`Ack`] carries), so a
+//! resent message is acknowledged again but processed once. A message is marked received
+//! only once processed: one refused for a transient reason (before the peer's Hello) is
+//! not acknowledged and comes again.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
+use std::ops::Range;
+
+use doorslam_geometry::key;
+use doorslam_ipc::wire::{
+    Ack, Body, Descriptor, Descriptors, Header, Hello, Kind, LoopClosure, LoopClosures, Match,
+    Matches, Message, RobotId, VerificationFeatures, MAX_ACK_RANGES, MAX_LOOP_CLOSURES,
+    MAX_MATCHES,
+};
+
+/// This robot's own place descriptors, matching and verification packets: place
+/// recognition and the front-end's keyframes, behind one trait so the protocol runs with a
+/// simulation stand-in ([`crate::standin::SimPlaces`]) before the real ones land.
+pub trait DescriptorSource {
+    /// Own descriptors of keyframes with index `from..`, at most `limit` of them, in key
+    /// order, and the keyframe range they cover (`from..end`, ending after the last
+    /// keyframe that exists now; keyframes without a descriptor inside it are covered too).
+    /// `end == from`: nothing new yet.
+    fn descriptors_since(&mut self, from: u64, limit: usize) -> DescriptorBatch;
+    /// Putative pairs between descriptors received from `peer` and own keyframes
+    /// (`query` = the received key, `candidate` = the own key).
+    fn match_descriptors(&mut self, peer: &RobotId, received: &[Descriptor]) -> Vec<Match>;
+    /// The verification packet of own keyframe `key` (None: unknown keyframe).
+    fn verification_features(&mut self, key: u64) -> Option<VerificationFeatures>;
+}
+
+/// What [`DescriptorSource::descriptors_since`] returns.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DescriptorBatch {
+    pub keyframes: Range<u64>,
+    pub descriptors: Vec<Descriptor>,
+}
+
+/// Geometric verification of one putative pair against the peer's packet (the front-end's
+/// PnP-RANSAC; stand-in: [`crate::standin::TruthVerifier`]). `m.query` is own, `m.candidate`
+/// the peer's keyframe, `features.key == m.candidate`. An accepted pair is a closure with
+/// `key_a = m.query`, `key_b = m.candidate`.
+pub trait Verifier {
+    fn verify(
+        &mut self,
+        peer: &RobotId,
+        m: &Match,
+        features: &VerificationFeatures,
+    ) -> Option<LoopClosure>;
+}
+
+/// Why the back-end refused a message from a peer (counted in the ledger, then dropped).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("back-end refused the message: {0}")]
+pub struct BackendRefusal(pub String);
+
+/// The distributed back-end's side of the team link (stand-ins: [`crate::standin::NoBackend`],
+/// [`crate::standin::EchoBackend`]).
+pub trait BackendExchange {
+    /// Inter-robot loop closures with `peer`, each given once: on α those it verified, on β
+    /// those received from α. `key_a` is α's keyframe, `key_b` β's.
+    fn loop_closures(&mut self, peer: &RobotId, closures: &[LoopClosure]);
+    /// Messages to send to `peer` now (called repeatedly while the peer is present and the
+    /// two have exchanged Hello); each is delivered once, in order per kind, even across
+    /// meetings cut off mid-way.
+    fn messages_for(&mut self, peer: &RobotId) -> Vec<Body>;
+    /// A message from `peer` of a kind the rendezvous itself does not handle (pose
+    /// estimates, and any back-end kind added to the wire format), each delivered once.
+    fn receive(&mut self, peer: &RobotId, body: Body) -> Result<(), BackendRefusal>;
+}
+
+/// The three pieces a session calls into, borrowed for one call.
+pub struct Services<'a> {
+    pub place: &'a mut dyn DescriptorSource,
+    pub verifier: &'a mut dyn Verifier,
+    pub backend: &'a mut dyn BackendExchange,
+}
+
+/// One message to send, and whether it is a resend (counted apart by the ledger).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Outgoing {
+    pub message: Message,
+    pub resend: bool,
+}
+
+/// Who does what in a pair: the robot with the smaller id initiates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Role {
+    /// α: sends descriptors, verifies, sends closures.
+    Initiator,
+    /// β: matches, sends verification packets.
+    Responder,
+}
+
+impl Role {
+    pub fn of(me: &RobotId, peer: &RobotId) -> Role {
+        if me < peer {
+            Role::Initiator
+        } else {
+            Role::Responder
+        }
+    }
+}
+
+/// This robot, as the protocol sees it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Identity {
+    pub id: RobotId,
+    /// The robot number of its keys (0 = 'a').
+    pub robot: u8,
+    /// Incremented at every start of the team link (persisted by the caller).
+    pub epoch: u64,
+}
+
+/// Tunables of the protocol.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ProtocolConfig {
+    /// Resend an unacknowledged message after this much local time.
+    pub retransmit_ms: u64,
+    /// Descriptors per batch.
+    pub descriptor_batch: usize,
+    /// A partial batch (fewer than `descriptor_batch` new keyframes) waits this long after
+    /// the previous batch for more keyframes: a batch's header and range are shared by its
+    /// descriptors, so keyframes trickling in during a meeting are not sent one by one.
+    pub batch_linger_ms: u64,
+    /// Unacknowledged messages of one kind beyond which no new descriptor batch is queued.
+    pub window: usize,
+    /// Sequences accepted ahead of the first missing one (bounds the receiver's memory
+    /// against a peer sending huge sequences).
+    pub receive_window: u64,
+}
+
+impl Default for ProtocolConfig {
+    fn default() -> Self {
+        Self {
+            retransmit_ms: 1000,
+            descriptor_batch: 16,
+            batch_linger_ms: 500,
+            window: 32,
+            receive_window: 4096,
+        }
+    }
+}
+
+/// Why a message from a peer was not processed. [`Refusal::reason`] is the ledger's name.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum Refusal {
+    #[error("epoch {got} is older than the peer's current epoch {current}")]
+    StaleEpoch { got: u64, current: u64 },
+    #[error("sequence {sequence} of kind {kind:?} already processed (acknowledged again)")]
+    Duplicate { kind: Kind, sequence: u64 },
+    #[error("sequence {sequence} of kind {kind:?} beyond the receive window")]
+    OutOfWindow { kind: Kind, sequence: u64 },
+    #[error("{0:?} before the peer's Hello (not acknowledged: it will come again)")]
+    BeforeHello(Kind),
+    #[error("{0:?} is not sent to a robot in this role")]
+    UnexpectedKind(Kind),
+    #[error("acknowledgment of epoch {got}, this robot's epoch is {current}")]
+    AckEpoch { got: u64, current: u64 },
+    #[error("invalid {kind:?}: {reason}")]
+    Invalid { kind: Kind, reason: String },
+    #[error(transparent)]
+    Backend(#[from] BackendRefusal),
+}
+
+impl Refusal {
+    /// Short name for the ledger's dropped counters.
+    pub fn reason(&self) -> &'static str {
+        match self {
+            Refusal::StaleEpoch { .. } => "stale_epoch",
+            Refusal::Duplicate { .. } => "duplicate",
+            Refusal::OutOfWindow { .. } => "out_of_window",
+            Refusal::BeforeHello(_) => "before_hello",
+            Refusal::UnexpectedKind(_) => "unexpected_kind",
+            Refusal::AckEpoch { .. } => "ack_epoch",
+            Refusal::Invalid { .. } => "invalid",
+            Refusal::Backend(_) => "backend_refused",
+        }
+    }
+}
+
+/// Counters of one peer session, readable at run time.
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct PeerStats {
+    pub meetings: u64,
+    /// Messages emitted (first sends and resends, acks included).
+    pub messages_sent: u64,
+    pub retransmissions: u64,
+    /// β: descriptors received for the first time (given to matching).
+    pub descriptors_delivered: u64,
+    /// β: descriptors that arrived again in a message not seen before: the sender resent
+    /// data already delivered (0 unless the sender lost its state).
+    pub descriptors_redelivered: u64,
+    /// α: descriptors acknowledged by the peer.
+    pub descriptors_acknowledged: u64,
+    pub matches_received: u64,
+    pub closures_accepted: u64,
+    pub closures_rejected: u64,
+    pub closures_received: u64,
+    pub backend_sent: u64,
+    pub backend_received: u64,
+}
+
+/// Received sequences of one kind in one peer epoch: all below `next`, plus `ahead`.
+#[derive(Debug, Clone, Default)]
+struct Received {
+    next: u64,
+    ahead: BTreeSet<u64>,
+}
+
+impl Received {
+    fn contains(&self, seq: u64) -> bool {
+        seq < self.next || self.ahead.contains(&seq)
+    }
+
+    fn insert(&mut self, seq: u64) {
+        if seq == self.next {
+            self.next += 1;
+            while self.ahead.remove(&self.next) {
+                self.next += 1;
+            }
+        } else if seq > self.next {
+            self.ahead.insert(seq);
+        }
+    }
+
+    /// The ranges received beyond `next`, at most [`MAX_ACK_RANGES`] (the first ones: the
+    /// sender resends the rest, which are then acknowledged again).
+    fn ranges(&self) -> Vec<Range<u64>> {
+        let mut out: Vec<Range<u64>> = Vec::new();
+        for &s in &self.ahead {
+            match out.last_mut() {
+                Some(r) if r.end == s => r.end = s + 1,
+                _ => {
+                    if out.len() == MAX_ACK_RANGES {
+                        break;
+                    }
+                    out.push(s..s + 1);
+                }
+            }
+        }
+        out
+    }
+}
+
+#[derive(Debug, Clone)]
+struct Pending {
+    body: Body,
+    /// None: due now (new, or the start of a meeting).
+    last_sent_ms: Option<u64>,
+    sends: u32,
+}
+
+/// Unacknowledged messages of one kind, by sequence.
+#[derive(Debug, Clone, Default)]
+struct Outbox {
+    next_seq: u64,
+    pending: BTreeMap<u64, Pending>,
+}
+
+/// The protocol with one peer.
+#[derive(Debug)]
+pub struct PeerSession {
+    me: Identity,
+    peer: RobotId,
+    role: Role,
+    config: ProtocolConfig,
+    connected: bool,
+    outboxes: BTreeMap<Kind, Outbox>,
+    ack_sequence: u64,
+    hello_queued: bool,
+    peer_epoch: Option<u64>,
+    peer_robot: Option<u8>,
+    received: BTreeMap<Kind, Received>,
+    ack_due: BTreeSet<Kind>,
+    // α
+    descriptors_queued_below: u64,
+    last_batch_ms: Option<u64>,
+    pending_matches: Vec<Match>,
+    peer_features: HashMap<u64, VerificationFeatures>,
+    verified: HashSet<(u64, u64)>,
+    // β
+    delivered: BTreeSet<u64>,
+    features_sent: HashSet<u64>,
+    closures_received: HashSet<(u64, u64)>,
+    stats: PeerStats,
+}
+
+fn invalid(kind: Kind, reason: impl Into<String>) -> Refusal {
+    Refusal::Invalid {
+        kind,
+        reason: reason.into(),
+    }
+}
+
+impl PeerSession {
+    pub fn new(me: Identity, peer: RobotId, config: ProtocolConfig) -> Self {
+        let role = Role::of(&me.id, &peer);
+        Self {
+            me,
+            peer,
+            role,
+            config,
+            connected: false,
+            outboxes: BTreeMap::new(),
+            ack_sequence: 0,
+            hello_queued: false,
+            peer_epoch: None,
+            peer_robot: None,
+            received: BTreeMap::new(),
+            ack_due: BTreeSet::new(),
+            descriptors_queued_below: 0,
+            last_batch_ms: None,
+            pending_matches: Vec::new(),
+            peer_features: HashMap::new(),
+            verified: HashSet::new(),
+            delivered: BTreeSet::new(),
+            features_sent: HashSet::new(),
+            closures_received: HashSet::new(),
+            stats: PeerStats::default(),
+        }
+    }
+
+    pub fn peer(&self) -> &RobotId {
+        &self.peer
+    }
+
+    pub fn role(&self) -> Role {
+        self.role
+    }
+
+    pub fn stats(&self) -> &PeerStats {
+        &self.stats
+    }
+
+    pub fn is_connected(&self) -> bool {
+        self.connected
+    }
+
+    /// β: keys of every descriptor delivered from this peer.
+    pub fn delivered_descriptors(&self) -> &BTreeSet<u64> {
+        &self.delivered
+    }
+
+    /// Sequences of `kind` sent and not yet acknowledged.
+    pub fn unacknowledged(&self, kind: Kind) -> Vec<u64> {
+        self.outboxes
+            .get(&kind)
+            .map(|o| o.pending.keys().copied().collect())
+            .unwrap_or_default()
+    }
+
+    /// α: every keyframe below this index has its descriptor queued (sent or to be resent).
+    pub fn descriptors_queued_below(&self) -> u64 {
+        self.descriptors_queued_below
+    }
+
+    /// The peer's token appeared: a meeting starts; everything unacknowledged goes out at
+    /// the next [`PeerSession::poll`] (the cut-off meeting resumes here).
+    pub fn meeting_started(&mut self) {
+        self.connected = true;
+        self.stats.meetings += 1;
+        for outbox in self.outboxes.values_mut() {
+            for p in outbox.pending.values_mut() {
+                p.last_sent_ms = None;
+            }
+        }
+    }
+
+    /// The peer's token disappeared: nothing is sent until the next meeting; all state
+    /// (outboxes, what was received) is kept for it.
+    pub fn meeting_ended(&mut self) {
+        self.connected = false;
+    }
+
+    fn queue(&mut self, body: Body) {
+        let outbox = self.outboxes.entry(body.kind()).or_default();
+        outbox.pending.insert(
+            outbox.next_seq,
+            Pending {
+                body,
+                last_sent_ms: None,
+                sends: 0,
+            },
+        );
+        outbox.next_seq += 1;
+    }
+
+    fn header(&self, sequence: u64) -> Header {
+        Header {
+            sender: self.me.id.clone(),
+            epoch: self.me.epoch,
+            sequence,
+        }
+    }
+
+    /// Messages to send now: new protocol steps, acknowledgments, and resends of what is
+    /// unacknowledged after `retransmit_ms`. Nothing while the peer is away.
+    pub fn poll(&mut self, now_ms: u64, svc: &mut Services<'_>) -> Vec<Outgoing> {
+        let mut out = Vec::new();
+        if !self.connected {
+            return out;
+        }
+        if !self.hello_queued {
+            self.queue(Body::Hello(Hello {
+                robot: self.me.robot,
+            }));
+            self.hello_queued = true;
+        }
+        if self.peer_robot.is_some() {
+            if self.role == Role::Initiator {
+                self.queue_descriptors(now_ms, svc);
+            }
+            for body in svc.backend.messages_for(&self.peer) {
+                self.stats.backend_sent += 1;
+                self.queue(body);
+            }
+        }
+        if let Some(epoch) = self.peer_epoch {
+            for kind in std::mem::take(&mut self.ack_due) {
+                let r = self.received.get(&kind).cloned().unwrap_or_default();
+                let ack = Ack {
+                    epoch,
+                    kind,
+                    next: r.next,
+                    received: r.ranges(),
+                };
+                out.push(Outgoing {
+                    message: Message::new(self.header(self.ack_sequence), ack),
+                    resend: false,
+                });
+                self.ack_sequence += 1;
+            }
+        }
+        let retransmit = self.config.retransmit_ms;
+        let mut resent = 0;
+        let mut emitted = Vec::new();
+        for outbox in self.outboxes.values_mut() {
+            for (&seq, p) in outbox.pending.iter_mut() {
+                // Exponential back-off (×2 per resend, up to ×16): on a slow radio an
+                // acknowledgment can take longer than `retransmit_ms`, and resending at a
+                // fixed rate would fill the link with copies.
+                let wait = retransmit << p.sends.saturating_sub(1).min(4);
+                let due = match p.last_sent_ms {
+                    None => true,
+                    Some(t) => now_ms.saturating_sub(t) >= wait,
+                };
+                if due {
+                    let resend = p.sends > 0;
+                    resent += u64::from(resend);
+                    p.sends = p.sends.saturating_add(1);
+                    p.last_sent_ms = Some(now_ms);
+                    emitted.push((seq, p.body.clone(), resend));
+                }
+            }
+        }
+        self.stats.retransmissions += resent;
+        for (seq, body, resend) in emitted {
+            out.push(Outgoing {
+                message: Message::new(self.header(seq), body),
+                resend,
+            });
+        }
+        self.stats.messages_sent += out.len() as u64;
+        out
+    }
+
+    fn queue_descriptors(&mut self, now_ms: u64, svc: &mut Services<'_>) {
+        loop {
+            let in_flight = self
+                .outboxes
+                .get(&Kind::Descriptors)
+                .map_or(0, |o| o.pending.len());
+            if in_flight >= self.config.window {
+                return;
+            }
+            let from = self.descriptors_queued_below;
+            let batch = svc
+                .place
+                .descriptors_since(from, self.config.descriptor_batch);
+            if batch.keyframes.end <= from || batch.keyframes.start != from {
+                return;
+            }
+            let partial = batch.descriptors.len() < self.config.descriptor_batch;
+            let lingering = self
+                .last_batch_ms
+                .is_some_and(|t| now_ms.saturating_sub(t) < self.config.batch_linger_ms);
+            if partial && lingering {
+                return;
+            }
+            self.last_batch_ms = Some(now_ms);
+            self.descriptors_queued_below = batch.keyframes.end;
+            self.queue(Body::Descriptors(Descriptors {
+                robot: self.me.robot,
+                keyframes: batch.keyframes,
+                descriptors: batch.descriptors,
+            }));
+        }
+    }
+
+    /// Processes one decoded message whose sender the caller checked (the key's `<from>`
+    /// equals the header's sender, and the peer is present).
+    pub fn receive(&mut self, msg: Message, svc: &mut Services<'_>) -> Result<(), Refusal> {
+        let epoch = msg.header.epoch;
+        match self.peer_epoch {
+            Some(current) if epoch < current => {
+                return Err(Refusal::StaleEpoch {
+                    got: epoch,
+                    current,
+                })
+            }
+            Some(current) if epoch == current => {}
+            _ => {
+                // First message, or the peer restarted: its old sequences mean nothing
+                // now, and it has forgotten this robot's Hello.
+                self.peer_epoch = Some(epoch);
+                self.received.clear();
+                self.ack_due.clear();
+                self.peer_robot = None;
+                if self.hello_queued && self.unacknowledged(Kind::Hello).is_empty() {
+                    self.hello_queued = false;
+                }
+            }
+        }
+        let kind = msg.kind();
+        let sequence = msg.header.sequence;
+        if let Body::Ack(ack) = msg.body {
+            return self.acknowledged(&ack);
+        }
+        let r = self.received.entry(kind).or_default();
+        if r.contains(sequence) {
+            self.ack_due.insert(kind);
+            return Err(Refusal::Duplicate { kind, sequence });
+        }
+        if sequence >= r.next.saturating_add(self.config.receive_window) {
+            return Err(Refusal::OutOfWindow { kind, sequence });
+        }
+        let result = self.process(msg.body, svc);
+        if !matches!(result, Err(Refusal::BeforeHello(_))) {
+            // Processed (or refused for good): acknowledge so it is not resent forever.
+            self.received.entry(kind).or_default().insert(sequence);
+            self.ack_due.insert(kind);
+        }
+        result
+    }
+
+    fn acknowledged(&mut self, ack: &Ack) -> Result<(), Refusal> {
+        if ack.epoch != self.me.epoch {
+            return Err(Refusal::AckEpoch {
+                got: ack.epoch,
+                current: self.me.epoch,
+            });
+        }
+        let Some(outbox) = self.outboxes.get_mut(&ack.kind) else {
+            return Ok(());
+        };
+        if ack.next > outbox.next_seq || ack.received.iter().any(|r| r.end > outbox.next_seq) {
+            return Err(invalid(Kind::Ack, "acknowledges sequences never sent"));
+        }
+        let done: Vec<u64> = outbox
+            .pending
+            .keys()
+            .copied()
+            .filter(|&s| s < ack.next || ack.received.iter().any(|r| r.contains(&s)))
+            .collect();
+        for s in done {
+            if let Some(p) = outbox.pending.remove(&s) {
+                if let Body::Descriptors(d) = &p.body {
+                    self.stats.descriptors_acknowledged += d.descriptors.len() as u64;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn process(&mut self, body: Body, svc: &mut Services<'_>) -> Result<(), Refusal> {
+        let kind = body.kind();
+        if let Body::Hello(h) = &body {
+            if h.robot == self.me.robot {
+                return Err(invalid(
+                    kind,
+                    format!(
+                        "peer {} claims this robot's key letter {}",
+                        self.peer,
+                        (b'a' + h.robot) as char
+                    ),
+                ));
+            }
+            self.peer_robot = Some(h.robot);
+            return Ok(());
+        }
+        let Some(peer_robot) = self.peer_robot else {
+            return Err(Refusal::BeforeHello(kind));
+        };
+        let mine = |k: u64| key::robot(k) == Some(self.me.robot);
+        let theirs = |k: u64| key::robot(k) == Some(peer_robot);
+        // if-let rather than `match`: kinds added to the wire format later (the back-end's)
+        // fall through to the back-end without touching this function.
+        if let Body::Descriptors(d) = &body {
+            if self.role != Role::Responder {
+                return Err(Refusal::UnexpectedKind(kind));
+            }
+            if d.robot != peer_robot {
+                return Err(invalid(kind, "batch of another robot than the peer's"));
+            }
+            let mut fresh = Vec::new();
+            for desc in &d.descriptors {
+                if self.delivered.insert(desc.key) {
+                    fresh.push(desc.clone());
+                } else {
+                    self.stats.descriptors_redelivered += 1;
+                }
+            }
+            self.stats.descriptors_delivered += fresh.len() as u64;
+            if !fresh.is_empty() {
+                let matches = svc.place.match_descriptors(&self.peer, &fresh);
+                self.queue_matches(matches, svc);
+            }
+            Ok(())
+        } else if let Body::Matches(m) = &body {
+            if self.role != Role::Initiator {
+                return Err(Refusal::UnexpectedKind(kind));
+            }
+            if let Some(bad) = m
+                .matches
+                .iter()
+                .find(|p| !mine(p.query) || !theirs(p.candidate))
+            {
+                return Err(invalid(
+                    kind,
+                    format!(
+                        "pair {:#x}/{:#x} is not (own, peer's)",
+                        bad.query, bad.candidate
+                    ),
+                ));
+            }
+            self.stats.matches_received += m.matches.len() as u64;
+            self.pending_matches.extend(
+                m.matches
+                    .iter()
+                    .filter(|p| !self.verified.contains(&(p.query, p.candidate))),
+            );
+            self.try_verify(svc);
+            Ok(())
+        } else if let Body::VerificationFeatures(v) = body {
+            if self.role != Role::Initiator {
+                return Err(Refusal::UnexpectedKind(kind));
+            }
+            if !theirs(v.key) {
+                return Err(invalid(kind, "packet of a keyframe not the peer's"));
+            }
+            self.peer_features.insert(v.key, v);
+            self.try_verify(svc);
+            Ok(())
+        } else if let Body::LoopClosures(l) = &body {
+            if self.role != Role::Responder {
+                return Err(Refusal::UnexpectedKind(kind));
+            }
+            if l.closures
+                .iter()
+                .any(|c| !theirs(c.key_a) || !mine(c.key_b))
+            {
+                return Err(invalid(kind, "closure keys are not (peer's, own)"));
+            }
+            let fresh: Vec<LoopClosure> = l
+                .closures
+                .iter()
+                .filter(|c| self.closures_received.insert((c.key_a, c.key_b)))
+                .cloned()
+                .collect();
+            self.stats.closures_received += fresh.len() as u64;
+            if !fresh.is_empty() {
+                svc.backend.loop_closures(&self.peer, &fresh);
+            }
+            Ok(())
+        } else {
+            self.stats.backend_received += 1;
+            svc.backend.receive(&self.peer, body)?;
+            Ok(())
+        }
+    }
+
+    /// β: queue the putative pairs and, once per own keyframe, its verification packet
+    /// (before the pairs, so α usually verifies as the pairs arrive).
+    fn queue_matches(&mut self, matches: Vec<Match>, svc: &mut Services<'_>) {
+        let mut sendable = Vec::new();
+        for m in matches {
+            if key::robot(m.candidate) != Some(self.me.robot) {
+                continue;
+            }
+            if !self.features_sent.contains(&m.candidate) {
+                match svc.place.verification_features(m.candidate) {
+                    Some(f) => {
+                        self.features_sent.insert(m.candidate);
+                        self.queue(Body::VerificationFeatures(f));
+                    }
+                    None => continue,
+                }
+            }
+            sendable.push(m);
+        }
+        for chunk in sendable.chunks(MAX_MATCHES) {
+            self.queue(Body::Matches(Matches {
+                matches: chunk.to_vec(),
+            }));
+        }
+    }
+
+    /// α: verify every pair whose packet has arrived; send and hand over the accepted.
+    fn try_verify(&mut self, svc: &mut Services<'_>) {
+        let mut accepted = Vec::new();
+        let mut waiting = Vec::new();
+        for m in std::mem::take(&mut self.pending_matches) {
+            let Some(features) = self.peer_features.get(&m.candidate) else {
+                waiting.push(m);
+                continue;
+            };
+            if !self.verified.insert((m.query, m.candidate)) {
+                continue;
+            }
+            match svc.verifier.verify(&self.peer, &m, features) {
+                Some(c) => accepted.push(c),
+                None => self.stats.closures_rejected += 1,
+            }
+        }
+        self.pending_matches = waiting;
+        if accepted.is_empty() {
+            return;
+        }
+        self.stats.closures_accepted += accepted.len() as u64;
+        svc.backend.loop_closures(&self.peer, &accepted);
+        for chunk in accepted.chunks(MAX_LOOP_CLOSURES) {
+            self.queue(Body::LoopClosures(LoopClosures {
+                closures: chunk.to_vec(),
+            }));
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn received_ranges_compress_and_cap() {
+        let mut r = Received::default();
+        for s in [0, 1, 3, 4, 7] {
+            r.insert(s);
+        }
+        assert_eq!(r.next, 2);
+        assert_eq!(r.ranges(), vec![3..5, 7..8]);
+        r.insert(2);
+        assert_eq!(r.next, 5);
+        assert!(r.contains(4) && !r.contains(5) && r.contains(7));
+        let mut r = Received::default();
+        for s in 0..200 {
+            r.insert(1 + 2 * s);
+        }
+        assert_eq!(r.ranges().len(), MAX_ACK_RANGES);
+    }
+
+    #[test]
+    fn roles_follow_ids() {
+        let a = RobotId::new("alpha").unwrap();
+        let b = RobotId::new("beta").unwrap();
+        assert_eq!(Role::of(&a, &b), Role::Initiator);
+        assert_eq!(Role::of(&b, &a), Role::Responder);
+    }
+}

@@ -1,0 +1,523 @@
+//! Acceptance of the team link (issue 21): two robots as separate processes, each in its
+//! own network namespace with its own address on a shared bridge (veth pairs), as on a
+//! drone radio LAN. They meet, the link is cut with nftables mid-exchange, they meet again;
+//! every descriptor must be delivered exactly once, the ledgers must add up to the bytes
+//! the links published (and to what crossed the interface), and `doorslam bw --json` on
+//! the run folder must print Table II's fields.
+//!
+//! Needs root (network namespaces), `ip` (iproute2) and `nft` (nftables): `deploy/setup`
+//! installs both. Names are unique per test process; everything is removed even when the
+//! test fails (a guard's Drop).
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+
+fn sh(args: &[&str]) -> Result<String, String> {
+    let out = Command::new(args[0])
+        .args(&args[1..])
+        .output()
+        .map_err(|e| format!("{}: {e}", args.join(" ")))?;
+    if !out.status.success() {
+        return Err(format!(
+            "{} failed: {}",
+            args.join(" "),
+            String::from_utf8_lossy(&out.stderr)
+        ));
+    }
+    Ok(String::from_utf8_lossy(&out.stdout).into_owned())
+}
+
+/// Two namespaces on one bridge; removed on drop, with the robots' processes.
+struct Net {
+    ns: [String; 2],
+    bridge: String,
+    veth: [String; 2],
+    addr: [String; 2],
+    children: Vec<Child>,
+}
+
+impl Net {
+    /// `tag`: one letter per test of this file (they run in parallel).
+    fn new(tag: char) -> Result<Net, String> {
+        let id = std::process::id() % 100_000;
+        let net = Net {
+            ns: [format!("dst{id}{tag}a"), format!("dst{id}{tag}b")],
+            bridge: format!("dsbr{id}{tag}"),
+            veth: [format!("ds{tag}a{id}"), format!("ds{tag}b{id}")],
+            addr: ["10.213.7.1".into(), "10.213.7.2".into()],
+            children: Vec::new(),
+        };
+        sh(&["ip", "link", "add", &net.bridge, "type", "bridge"])?;
+        sh(&["ip", "link", "set", &net.bridge, "up"])?;
+        for i in 0..2 {
+            let (ns, veth, peer) = (&net.ns[i], &net.veth[i], format!("{}p", net.veth[i]));
+            sh(&["ip", "netns", "add", ns])?;
+            sh(&[
+                "ip", "link", "add", veth, "type", "veth", "peer", "name", &peer,
+            ])?;
+            sh(&["ip", "link", "set", &peer, "master", &net.bridge, "up"])?;
+            sh(&["ip", "link", "set", veth, "netns", ns])?;
+            let cidr = format!("{}/24", net.addr[i]);
+            sh(&["ip", "-n", ns, "addr", "add", &cidr, "dev", veth])?;
+            sh(&["ip", "-n", ns, "link", "set", veth, "up"])?;
+            sh(&["ip", "-n", ns, "link", "set", "lo", "up"])?;
+        }
+        Ok(net)
+    }
+
+    /// Out of radio range: robot b drops everything from and to robot a.
+    fn cut(&self) -> Result<(), String> {
+        let rules = format!(
+            "add table inet dscut; \
+             add chain inet dscut in {{ type filter hook input priority 0; }}; \
+             add rule inet dscut in ip saddr {a} drop; \
+             add chain inet dscut out {{ type filter hook output priority 0; }}; \
+             add rule inet dscut out ip daddr {a} drop",
+            a = self.addr[0]
+        );
+        sh(&["ip", "netns", "exec", &self.ns[1], "nft", &rules])?;
+        Ok(())
+    }
+
+    fn rejoin(&self) -> Result<(), String> {
+        sh(&[
+            "ip",
+            "netns",
+            "exec",
+            &self.ns[1],
+            "nft",
+            "delete",
+            "table",
+            "inet",
+            "dscut",
+        ])?;
+        Ok(())
+    }
+
+    /// Radio-like link: every interface capped at `kbit` (tc tbf) and each robot dropping
+    /// `loss_percent` of the packets from the other at random (nftables numgen).
+    fn radio(&self, kbit: u32, loss_percent: u32) -> Result<(), String> {
+        for i in 0..2 {
+            let rate = format!("{kbit}kbit");
+            sh(&[
+                "ip",
+                "netns",
+                "exec",
+                &self.ns[i],
+                "tc",
+                "qdisc",
+                "add",
+                "dev",
+                &self.veth[i],
+                "root",
+                "tbf",
+                "rate",
+                &rate,
+                "burst",
+                "4kb",
+                "latency",
+                "400ms",
+            ])?;
+            let rules = format!(
+                "add table inet dsloss; \
+                 add chain inet dsloss in {{ type filter hook input priority 0; }}; \
+                 add rule inet dsloss in ip saddr {peer} numgen random mod 100 < {loss_percent} drop",
+                peer = self.addr[1 - i]
+            );
+            sh(&["ip", "netns", "exec", &self.ns[i], "nft", &rules])?;
+        }
+        Ok(())
+    }
+
+    /// The loss ends (the cap stays).
+    fn clear_loss(&self) -> Result<(), String> {
+        for ns in &self.ns {
+            sh(&[
+                "ip", "netns", "exec", ns, "nft", "delete", "table", "inet", "dsloss",
+            ])?;
+        }
+        Ok(())
+    }
+
+    fn tx_bytes(&self, i: usize) -> u64 {
+        let path = format!("/sys/class/net/{}/statistics/tx_bytes", self.veth[i]);
+        sh(&["ip", "netns", "exec", &self.ns[i], "cat", &path])
+            .ok()
+            .and_then(|s| s.trim().parse().ok())
+            .unwrap_or(0)
+    }
+}
+
+impl Drop for Net {
+    fn drop(&mut self) {
+        for c in &mut self.children {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+        for ns in &self.ns {
+            let _ = sh(&["ip", "netns", "del", ns]);
+        }
+        let _ = sh(&["ip", "link", "del", &self.bridge]);
+    }
+}
+
+/// What a test's robots run with.
+struct Params {
+    lease_ms: u64,
+    keyframes: u64,
+    keyframe_interval_ms: u64,
+    features: usize,
+}
+
+const ACCEPTANCE: Params = Params {
+    lease_ms: 1500,
+    keyframes: 300,
+    keyframe_interval_ms: 20,
+    features: 100,
+};
+
+fn config(
+    dir: &Path,
+    robot: &str,
+    index: u32,
+    team: &str,
+    listen: &str,
+    connect: &str,
+    p: &Params,
+) -> PathBuf {
+    let path = dir.join(format!("{robot}.toml"));
+    let connect = if connect.is_empty() {
+        String::new()
+    } else {
+        format!("\"{connect}\"")
+    };
+    let text = format!(
+        r#"[robot]
+id = "{robot}"
+index = {index}
+
+[team]
+name = "{team}"
+listen = ["{listen}"]
+connect = [{connect}]
+multicast_scouting = false
+lease_ms = {lease}
+retransmit_ms = 300
+write_every_ms = 200
+run_dir = "{run}"
+
+[team.standin]
+keyframes = {keyframes}
+keyframe_interval_ms = {interval}
+features_per_keyframe = {features}
+"#,
+        run = dir.join("run").display(),
+        lease = p.lease_ms,
+        keyframes = p.keyframes,
+        interval = p.keyframe_interval_ms,
+        features = p.features,
+    );
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn status(dir: &Path, robot: &str) -> Option<Value> {
+    let text = std::fs::read_to_string(dir.join("run").join(robot).join("status.json")).ok()?;
+    serde_json::from_str(&text).ok()
+}
+
+fn delivered(dir: &Path) -> usize {
+    status(dir, "b")
+        .and_then(|s| {
+            s["peers"]["a"]["delivered_descriptors"]
+                .as_array()
+                .map(|a| a.len())
+        })
+        .unwrap_or(0)
+}
+
+fn wait_for(what: &str, limit: Duration, mut done: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !done() {
+        assert!(start.elapsed() < limit, "{what}: not within {limit:?}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+fn present(dir: &Path, robot: &str) -> bool {
+    status(dir, robot)
+        .and_then(|s| s["present"].as_array().map(|p| !p.is_empty()))
+        .unwrap_or(false)
+}
+
+fn require_root_and_tools() {
+    assert!(
+        unsafe { libc::geteuid() } == 0,
+        "this test needs root: it puts each robot in its own network namespace (run the tests as root, as CI does)"
+    );
+    for tool in [["ip", "-V"], ["nft", "--version"]] {
+        assert!(
+            sh(&tool).is_ok(),
+            "`{}` not found: run deploy/setup (installs iproute2 and nftables)",
+            tool[0]
+        );
+    }
+}
+
+/// Starts robot a (listening) and b (connecting to a), each in its namespace.
+fn start_robots(net: &mut Net, d: &Path, team: &str, p: &Params) {
+    let ep = |i: usize| format!("tcp/{}:7447", net.addr[i]);
+    let ca = config(d, "a", 0, team, &ep(0), "", p);
+    let cb = config(d, "b", 1, team, &ep(1), &ep(0), p);
+    let bin = env!("CARGO_BIN_EXE_doorslam");
+    for (i, cfg) in [(0, &ca), (1, &cb)] {
+        let log = std::fs::File::create(d.join(format!("robot{i}.log"))).unwrap();
+        let child = Command::new("ip")
+            .args([
+                "netns", "exec", &net.ns[i], bin, "service", "team", "--config",
+            ])
+            .arg(cfg)
+            .env("RUST_LOG", "info,zenoh=warn")
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .unwrap();
+        net.children.push(child);
+    }
+}
+
+fn logs(d: &Path) -> String {
+    (0..2)
+        .map(|i| std::fs::read_to_string(d.join(format!("robot{i}.log"))).unwrap_or_default())
+        .collect::<Vec<_>>()
+        .join("\n---\n")
+}
+
+#[test]
+fn two_robots_in_network_namespaces_meet_are_cut_off_and_meet_again() {
+    require_root_and_tools();
+    let mut net = Net::new('c').unwrap_or_else(|e| panic!("network namespaces: {e}"));
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let team = format!("nsc{}", std::process::id());
+    start_robots(&mut net, d, &team, &ACCEPTANCE);
+    let bin = env!("CARGO_BIN_EXE_doorslam");
+
+    // First meeting, cut off mid-way through the descriptors.
+    let limit = Duration::from_secs(30);
+    let start = Instant::now();
+    while delivered(d) < 40 {
+        assert!(
+            start.elapsed() < limit,
+            "no descriptors delivered in 30 s:\n{}",
+            logs(d)
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    net.cut().unwrap();
+    let at_cut = delivered(d);
+    wait_for(
+        "both robots see the other leave",
+        Duration::from_secs(15),
+        || !present(d, "a") && !present(d, "b"),
+    );
+    let during_cut = delivered(d);
+    assert!(
+        during_cut < 300,
+        "the cut came after the exchange ended (delivered {at_cut} at the cut)"
+    );
+
+    // Second meeting: everything left arrives.
+    net.rejoin().unwrap();
+    let start = Instant::now();
+    loop {
+        let a = status(d, "a");
+        let done = delivered(d) == 300
+            && a.as_ref().is_some_and(|s| {
+                s["keyframes_created"] == 300 && s["peers"]["b"]["unacknowledged_messages"] == 0
+            })
+            && status(d, "b").is_some_and(|s| s["peers"]["a"]["unacknowledged_messages"] == 0);
+        if done {
+            break;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "second meeting incomplete after 60 s (delivered {}):\n{}",
+            delivered(d),
+            logs(d)
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    for c in &net.children {
+        unsafe { libc::kill(c.id() as i32, libc::SIGTERM) };
+    }
+    for c in &mut net.children {
+        let code = c.wait().unwrap();
+        assert!(code.success(), "robot exited with {code}:\n{}", logs(d));
+    }
+    net.children.clear();
+
+    let sa = status(d, "a").unwrap();
+    let sb = status(d, "b").unwrap();
+    assert_eq!(sa["finished"], true);
+    // Exactly once: b's delivery log holds each of a's 300 keyframes once, none arrived
+    // again in a fresh message, and both saw two meetings.
+    let keys: Vec<u64> = sb["peers"]["a"]["delivered_descriptors"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap())
+        .collect();
+    assert_eq!(keys, (0..300).collect::<Vec<u64>>());
+    assert_eq!(sb["peers"]["a"]["stats"]["descriptors_delivered"], 300);
+    assert_eq!(sb["peers"]["a"]["stats"]["descriptors_redelivered"], 0);
+    assert_eq!(sa["peers"]["b"]["stats"]["meetings"], 2);
+    assert_eq!(sb["peers"]["a"]["stats"]["meetings"], 2);
+
+    // The ledgers add up to the bytes the links published, and fit what left each host.
+    let mut ledgers_sent = 0;
+    for (i, (robot, s)) in [("a", &sa), ("b", &sb)].into_iter().enumerate() {
+        let text = std::fs::read_to_string(d.join("run").join(robot).join("ledger.json")).unwrap();
+        let ledger: Value = serde_json::from_str(&text).unwrap();
+        let sum = |field: &str| -> u64 {
+            ledger["traffic"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .filter(|t| t["direction"] == "sent")
+                .map(|t| t[field].as_u64().unwrap())
+                .sum()
+        };
+        assert_eq!(
+            sum("payload_bytes"),
+            s["published_bytes"].as_u64().unwrap(),
+            "{robot}"
+        );
+        assert_eq!(
+            sum("messages"),
+            s["published_messages"].as_u64().unwrap(),
+            "{robot}"
+        );
+        ledgers_sent += sum("payload_bytes");
+        let tx = net.tx_bytes(i);
+        let wire = sum("wire_bytes");
+        // Below the estimate only by what Zenoh dropped into the dead link before the lease
+        // ran out; above it by TCP/IP headers (52 B per segment), ARP and keep-alives.
+        assert!(
+            tx as f64 >= 0.75 * wire as f64 && tx as f64 <= 1.5 * wire as f64 + 65_536.0,
+            "{robot}: interface sent {tx} B, ledger estimates {wire} B on the wire"
+        );
+        eprintln!("{robot}: ledger payload {} B, wire estimate {wire} B, interface tx {tx} B (TCP/IP, ARP, keep-alives and retransmissions on top)", sum("payload_bytes"));
+    }
+
+    // `doorslam bw --json` on the run folder.
+    let out = Command::new(bin)
+        .args(["bw", "--json"])
+        .arg(d.join("run"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let bw: Value = serde_json::from_slice(&out.stdout).expect("one JSON object");
+    for kind in [
+        "descriptor",
+        "verification_features",
+        "loop_closure",
+        "pose_estimate",
+        "backend",
+    ] {
+        for field in ["count", "bytes", "avg_bytes"] {
+            assert!(
+                bw["per_kind"][kind][field].is_number(),
+                "per_kind.{kind}.{field} missing: {bw}"
+            );
+        }
+    }
+    // First sends: one descriptor per keyframe, exactly (resends are counted apart).
+    assert_eq!(bw["per_kind"]["descriptor"]["count"], 300);
+    assert!(bw["per_kind"]["descriptor"]["avg_bytes"].as_f64().unwrap() <= 140.0);
+    assert!(bw["per_peer"]["a"]["b"].is_object());
+    assert!(bw["per_rendezvous"].as_array().unwrap().len() >= 4);
+    assert!(bw["raw_image_equivalent_bytes"].as_u64().unwrap() > 0);
+    assert_eq!(bw["total_bytes"].as_u64().unwrap(), ledgers_sent);
+    let table = Command::new(bin)
+        .arg("bw")
+        .arg(d.join("run"))
+        .output()
+        .unwrap();
+    eprintln!("{}", String::from_utf8_lossy(&table.stdout));
+}
+
+/// The issue's radio target: with 30 % loss and a 250 kbit/s cap, every descriptor still
+/// arrives exactly once after the link clears.
+#[test]
+fn through_30_percent_loss_and_250_kbit_every_descriptor_arrives_once() {
+    require_root_and_tools();
+    let mut net = Net::new('r').unwrap_or_else(|e| panic!("network namespaces: {e}"));
+    net.radio(250, 30).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let team = format!("nsr{}", std::process::id());
+    let radio = Params {
+        lease_ms: 3000,
+        keyframes: 150,
+        keyframe_interval_ms: 50,
+        features: 50,
+    };
+    start_robots(&mut net, d, &team, &radio);
+    let start = Instant::now();
+    std::thread::sleep(Duration::from_secs(20));
+    let during_loss = delivered(d);
+    net.clear_loss().unwrap();
+    let cleared = Instant::now();
+    loop {
+        let done = delivered(d) == 150
+            && status(d, "a").is_some_and(|s| {
+                s["keyframes_created"] == 150 && s["peers"]["b"]["unacknowledged_messages"] == 0
+            });
+        if done {
+            break;
+        }
+        assert!(
+            cleared.elapsed() < Duration::from_secs(90),
+            "incomplete 90 s after the loss cleared (delivered {}):\n{}",
+            delivered(d),
+            logs(d)
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let after = cleared.elapsed();
+    for c in &net.children {
+        unsafe { libc::kill(c.id() as i32, libc::SIGTERM) };
+    }
+    for c in &mut net.children {
+        let code = c.wait().unwrap();
+        assert!(code.success(), "robot exited with {code}:\n{}", logs(d));
+    }
+    net.children.clear();
+    let sa = status(d, "a").unwrap();
+    let sb = status(d, "b").unwrap();
+    let keys: Vec<u64> = sb["peers"]["a"]["delivered_descriptors"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap())
+        .collect();
+    assert_eq!(keys, (0..150).collect::<Vec<u64>>());
+    assert_eq!(sb["peers"]["a"]["stats"]["descriptors_redelivered"], 0);
+    eprintln!(
+        "radio 250 kbit/s, 30 % loss: {during_loss} of 150 descriptors delivered in the 20 s of loss, all {} s after it cleared; meetings a {} b {}, a's retransmissions {}, total {} s",
+        after.as_secs_f64(),
+        sa["peers"]["b"]["stats"]["meetings"],
+        sb["peers"]["a"]["stats"]["meetings"],
+        sa["peers"]["b"]["stats"]["retransmissions"],
+        start.elapsed().as_secs_f64()
+    );
+}
