@@ -6,6 +6,7 @@ mod eval;
 mod pcm;
 mod pending;
 mod pgo;
+mod place;
 mod replay;
 mod service;
 pub(crate) mod sim;
@@ -37,6 +38,8 @@ pub enum Command {
     Dpgo(pending::PendingArgs),
     /// Evaluate trajectories: ATE / RPE against ground truth.
     Eval(eval::EvalArgs),
+    /// Place recognition offline: describe keyframes, evaluate matching, train the BoW vocabulary.
+    Place(place::PlaceArgs),
     /// Simulate worlds, flights and multi-robot pose graphs.
     Sim(sim::SimArgs),
     /// Replay a dataset (KITTI / EuRoC layout) into the on-robot pipeline.
@@ -71,6 +74,7 @@ pub fn main() -> ExitCode {
             pending::fail("dpgo", "the distributed back-end issue (next wave)", &args)
         }
         Command::Eval(args) => eval::run(args),
+        Command::Place(args) => place::run(args),
         Command::Sim(args) => sim::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Bw(args) => pending::fail("bw", "the team-link issue (next wave)", &args),
