@@ -61,6 +61,10 @@ SEED = 20
 # Ground truth widening (README.md): keyframes within this distance and angle of a closure's.
 WIDEN_M, WIDEN_DEG = 2.0, 20.0
 FEATURES_PER_IMAGE = 120
+# Whitening: principal direction i is divided by sigma_i ** WHITEN_POWER (1 = full
+# whitening as in NetVLAD, 0 = plain PCA). 0.25 measured best on the validation town but
+# worse on the benchmark towns (README.md, BENCHMARKS.md): full whitening it is.
+WHITEN_POWER = 1.0
 KMEANS_ITERS = 40
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
@@ -399,7 +403,7 @@ def kmeans(x, k, rng, iters):
     return c
 
 
-def build(p, images, last_block, log_prefix=""):
+def build(p, images, last_block, log_prefix="", power=WHITEN_POWER):
     """Fits the NetVLAD centroids and the PCA-whitening on `images`; returns the ONNX model."""
     rng = np.random.default_rng(SEED)
     local = run_batched(session(descriptor_model(p, last_block)), images)  # [N, C, h, w]
@@ -422,8 +426,8 @@ def build(p, images, last_block, log_prefix=""):
     u, s, vt = np.linalg.svd(vlad - mean, full_matrices=False)
     vt = vt[:DIM]
     vt *= np.sign(vt[np.arange(DIM), np.abs(vt).argmax(1)])[:, None]  # fixed eigenvector signs
-    # Whitening: unit variance along each kept principal direction.
-    proj = vt.T / (s[:DIM] / np.sqrt(len(vlad) - 1) + 1e-9)
+    # (Partial) whitening along each kept principal direction (sigma: its standard deviation).
+    proj = vt.T / ((s[:DIM] / np.sqrt(len(vlad) - 1)) ** power + 1e-9)
     return descriptor_model(p, last_block, centroids, alpha, mean, proj)
 
 
@@ -462,10 +466,7 @@ def select(p, images, doorslam, cache):
         for y in xb:
             positives[y].update(xa)
     val = np.stack([preprocess_gray(read_gray(f)) for f in frames])
-    for last_block in (4, 7, 10, 15):
-        t = time.time()
-        sess = session(build(p, images, last_block, f"[block {last_block}] "))
-        desc = run_batched(sess, val)
+    def recall(desc):
         hits = queries = 0
         for i, key in enumerate(keys):
             if not positives[key]:
@@ -474,8 +475,16 @@ def select(p, images, doorslam, cache):
             d[[j for j, other in enumerate(keys) if other[0] == key[0]]] = np.inf
             queries += 1
             hits += keys[int(np.argmin(d))] in positives[key]
-        print(f"select: cut after block {last_block}: recall@1 {hits / queries:.3f} "
+        return hits / queries, queries
+
+    for last_block in (4, 7, 10, 15):
+        t = time.time()
+        r, queries = recall(run_batched(session(build(p, images, last_block, f"[block {last_block}] ")), val))
+        print(f"select: cut after block {last_block}, whitening power {WHITEN_POWER}: recall@1 {r:.3f} "
               f"({queries} queries, {time.time() - t:.0f} s)")
+    for power in (0.0, 0.25, 0.5, 1.0):
+        r, _ = recall(run_batched(session(build(p, images, STAGE_END, f"[power {power}] ", power)), val))
+        print(f"select: cut after block {STAGE_END}, whitening power {power}: recall@1 {r:.3f}")
 
 
 def main():
