@@ -11,7 +11,7 @@ use doorslam_place_recognition::bow::{default_vocabulary_path, orb_descriptors, 
 use doorslam_place_recognition::describer::BOW_FEATURES;
 use doorslam_place_recognition::eval::{pr_curve, svg, EvalSet, Keyframe};
 use doorslam_place_recognition::matching::{
-    distance2, nearest, wire_bytes_per_descriptor, Quantized,
+    distance2, nearest, time_brute_force, wire_bytes_per_descriptor, Quantized,
 };
 use doorslam_place_recognition::netvlad::default_model_path;
 use doorslam_place_recognition::{Describer, GrayImage, NetVlad};
@@ -28,6 +28,8 @@ pub enum PlaceCommand {
     Describe(DescribeArgs),
     /// Precision-recall of inter-robot matches against ground truth.
     Eval(EvalArgs),
+    /// Time brute-force matching: QUERIES x DATABASE random 128-D descriptors, float and int8.
+    BenchMatch(BenchMatchArgs),
     /// Train the bag-of-words vocabulary (k-majority on ORB descriptors) on the left
     /// images of dataset folders, `sim world` outputs, folders of PNGs or PNG files.
     Vocabulary(VocabularyArgs),
@@ -87,6 +89,16 @@ pub struct EvalArgs {
 }
 
 #[derive(Debug, Args)]
+pub struct BenchMatchArgs {
+    #[arg(long, default_value_t = 1000)]
+    pub queries: usize,
+    #[arg(long, default_value_t = 10000)]
+    pub database: usize,
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, Args)]
 pub struct VocabularyArgs {
     #[arg(required = true)]
     pub dirs: Vec<PathBuf>,
@@ -108,7 +120,28 @@ pub fn run(args: PlaceArgs) -> Result<()> {
         PlaceCommand::Describe(a) => describe(a),
         PlaceCommand::Eval(a) => eval(a),
         PlaceCommand::Vocabulary(a) => vocabulary(a),
+        PlaceCommand::BenchMatch(a) => bench_match(a),
     }
+}
+
+fn bench_match(a: BenchMatchArgs) -> Result<()> {
+    let (float_s, int8_s, agree) = time_brute_force(a.queries, a.database);
+    let json = serde_json::json!({
+        "queries": a.queries,
+        "database": a.database,
+        "float_s": float_s,
+        "int8_s": int8_s,
+        "nearest_agree": agree,
+    });
+    if a.json {
+        println!("{json}");
+    } else {
+        println!(
+            "{} x {} brute force: float {float_s:.3} s, int8 {int8_s:.3} s, {agree} nearest neighbours agree",
+            a.queries, a.database
+        );
+    }
+    Ok(())
 }
 
 fn open_describer(a: &DescriberArgs) -> Result<Describer> {
