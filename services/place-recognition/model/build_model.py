@@ -487,6 +487,23 @@ def select(p, images, doorslam, cache):
         print(f"select: cut after block {STAGE_END}, whitening power {power}: recall@1 {r:.3f}")
 
 
+def compare(model, descriptors, kitti_dir):
+    """Largest difference between the Rust descriptors and this script's, per keyframe."""
+    sess = ort.InferenceSession(str(model), providers=["CPUExecutionProvider"])
+    worst = 0.0
+    for line in descriptors.read_text().splitlines():
+        if line.startswith("#"):
+            continue
+        robot, frame, *values = line.split()
+        img = read_gray(kitti_dir / "image_0" / f"{int(frame):06d}.png")
+        ours = sess.run(None, {sess.get_inputs()[0].name: preprocess_gray(img)[None]})[0][0]
+        diff = float(np.linalg.norm(ours - np.array(values, np.float64)))
+        worst = max(worst, diff)
+        print(f"compare: frame {frame}: |rust - python| = {diff:.2e}")
+    if worst > 1e-3:
+        sys.exit(f"build_model: Rust and Python preprocessing disagree (distance {worst:.2e})")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, help="where to write the descriptor model (.onnx)")
@@ -495,10 +512,16 @@ def main():
     ap.add_argument("--doorslam", type=Path, help="the doorslam binary (renders training towns)")
     ap.add_argument("--vocabulary", type=Path,
                     help="also train the BoW vocabulary on the same images (doorslam place vocabulary)")
+    ap.add_argument("--compare", nargs=2, metavar=("DESCRIPTORS", "KITTI_DIR"),
+                    help="check `doorslam place describe KITTI_DIR --out DESCRIPTORS` (Rust "
+                         "preprocessing) against this script's preprocessing, with the --out model")
     ap.add_argument("--select", action="store_true", help="measure recall per truncation point instead")
     args = ap.parse_args()
     if not args.out and not args.select and not args.vocabulary:
         ap.error("--out FILE is required (or --select)")
+    if args.compare:
+        compare(args.out, Path(args.compare[0]), Path(args.compare[1]))
+        return
     start = time.time()
     repo = Path(__file__).resolve().parents[3]
     args.cache.mkdir(parents=True, exist_ok=True)
