@@ -578,7 +578,15 @@ fn place_eval_prints_the_documented_fields_and_names_a_missing_model() {
     assert!(out.status.success(), "{}", stderr(&out));
 
     // A missing model is an error naming the file and how to build it, not a panic.
-    let out = doorslam(&["place", "eval", town, "--model", "/nonexistent/m.onnx"]);
+    let out = doorslam(&[
+        "place",
+        "eval",
+        town,
+        "--method",
+        "netvlad",
+        "--model",
+        "/nonexistent/m.onnx",
+    ]);
     assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
     let err = stderr(&out);
     assert!(
@@ -592,6 +600,8 @@ fn place_eval_prints_the_documented_fields_and_names_a_missing_model() {
         "place",
         "eval",
         town,
+        "--method",
+        "netvlad",
         "--int8",
         "--json",
         "--svg",
