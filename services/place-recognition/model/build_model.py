@@ -15,7 +15,7 @@
    PCA-whitening to 128-D fitted on the training images, all inside one ONNX graph:
    input `image [batch, 3, H, W]` float (ImageNet-normalized), output `descriptor [batch, 128]`.
 
-Training images: `doorslam sim world` towns with seeds TRAIN_SEEDS (never the evaluation
+Training images: `doorslam sim world` towns with seeds 101.. (TRAIN_TOWNS; never the evaluation
 seeds, see README.md) and the real KITTI frames under ../shared/data/stereo (the EuRoC folders
 are held out for the benchmark). Every random choice is seeded: two runs write the same bytes.
 """
@@ -55,7 +55,7 @@ STAGE_END = 10
 INPUT_W, INPUT_H = 320, 208
 CLUSTERS = 64
 DIM = 128
-TRAIN_SEEDS = [101, 102, 103]
+TRAIN_TOWNS = 6  # seeds 101, 102, ...; chosen by `--select chosen --train-towns N` (README.md)
 TRAIN_ROBOTS, TRAIN_FRAMES = 3, 100
 SEED = 20
 # Ground truth widening (README.md): keyframes within this distance and angle of a closure's.
@@ -356,7 +356,7 @@ def check_classifier(p, samples_wheel):
 def training_images(repo, cache, doorslam):
     """Left frames of the training towns (rendered once into the cache) and real KITTI frames."""
     paths = []
-    for seed in TRAIN_SEEDS:
+    for seed in train_seeds():
         out = cache / f"train-town-{seed}-{TRAIN_ROBOTS}x{TRAIN_FRAMES}"
         if not (out / "done").exists():
             log(f"rendering training town seed {seed} into {out}")
@@ -431,7 +431,11 @@ def build(p, images, last_block, log_prefix="", power=WHITEN_POWER):
     return descriptor_model(p, last_block, centroids, alpha, mean, proj)
 
 
-def select(p, images, doorslam, cache):
+def train_seeds():
+    return [101 + i for i in range(TRAIN_TOWNS)]
+
+
+def select(p, images, doorslam, cache, what):
     """Recall@1 of inter-robot matches on a held-out validation town, per truncation point."""
     out = cache / "val-town-201-5x150"
     if not (out / "done").exists():
@@ -477,6 +481,13 @@ def select(p, images, doorslam, cache):
             hits += keys[int(np.argmin(d))] in positives[key]
         return hits / queries, queries
 
+    if what == "chosen":
+        # The configuration this file builds, and the 7168-D VLAD before the projection.
+        model = build(p, images, STAGE_END)
+        r, queries = recall(run_batched(session(model), val))
+        print(f"select: {TRAIN_TOWNS} training towns ({len(images)} images), block {STAGE_END}, "
+              f"whitening power {WHITEN_POWER}: recall@1 {r:.3f} ({queries} queries)")
+        return
     for last_block in (4, 7, 10, 15):
         t = time.time()
         r, queries = recall(run_batched(session(build(p, images, last_block, f"[block {last_block}] ")), val))
@@ -505,6 +516,7 @@ def compare(model, descriptors, kitti_dir):
 
 
 def main():
+    global TRAIN_TOWNS
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, help="where to write the descriptor model (.onnx)")
     ap.add_argument("--cache", type=Path,
@@ -515,13 +527,18 @@ def main():
     ap.add_argument("--compare", nargs=2, metavar=("DESCRIPTORS", "KITTI_DIR"),
                     help="check `doorslam place describe KITTI_DIR --out DESCRIPTORS` (Rust "
                          "preprocessing) against this script's preprocessing, with the --out model")
-    ap.add_argument("--select", action="store_true", help="measure recall per truncation point instead")
+    ap.add_argument("--select", choices=["all", "chosen"],
+                    help="measure recall on the validation town instead of writing: per cut point "
+                         "and whitening power (all), or of the configuration built (chosen)")
+    ap.add_argument("--train-towns", type=int, default=TRAIN_TOWNS,
+                    help=f"number of training towns (default {TRAIN_TOWNS})")
     args = ap.parse_args()
     if not args.out and not args.select and not args.vocabulary:
         ap.error("--out FILE is required (or --select)")
     if args.compare:
         compare(args.out, Path(args.compare[0]), Path(args.compare[1]))
         return
+    TRAIN_TOWNS = args.train_towns
     start = time.time()
     repo = Path(__file__).resolve().parents[3]
     args.cache.mkdir(parents=True, exist_ok=True)
@@ -542,7 +559,7 @@ def main():
     log(f"{len(paths)} training images")
     if args.vocabulary:
         t = time.time()
-        dirs = [str(args.cache / f"train-town-{s}-{TRAIN_ROBOTS}x{TRAIN_FRAMES}") for s in TRAIN_SEEDS]
+        dirs = [str(args.cache / f"train-town-{s}-{TRAIN_ROBOTS}x{TRAIN_FRAMES}") for s in train_seeds()]
         stereo = shared_stereo(repo)
         kitti = stereo / "kitti"
         dirs += [str(f) for f in sorted(kitti.glob("0*.png")) + [kitti / "left.png"] if f.exists()]
@@ -556,7 +573,7 @@ def main():
         return
     images = np.stack([preprocess_gray(read_gray(f)) for f in paths])
     if args.select:
-        select(p, images, doorslam, args.cache)
+        select(p, images, doorslam, args.cache, args.select)
         return
     model = build(p, images, STAGE_END)
     args.out.parent.mkdir(parents=True, exist_ok=True)
