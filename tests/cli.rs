@@ -15,8 +15,8 @@ fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
-const SUBCOMMANDS: [&str; 11] = [
-    "service", "up", "pgo", "pcm", "dpgo", "eval", "sim", "replay", "bw", "demo", "vo",
+const SUBCOMMANDS: [&str; 12] = [
+    "service", "up", "pgo", "pcm", "dpgo", "eval", "sim", "replay", "bw", "demo", "vo", "place",
 ];
 
 #[test]
@@ -648,4 +648,75 @@ fn vo_refuses_unrectified_euroc_and_missing_folders_by_name() {
         "{}",
         stderr(&out)
     );
+}
+
+#[test]
+fn place_eval_prints_the_documented_fields_and_names_a_missing_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let town = dir.path().join("town");
+    let town = town.to_str().unwrap();
+    let out = doorslam(&[
+        "sim", "world", "--robots", "2", "--frames", "60", "--seed", "7", "--out", town,
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+
+    // A missing model is an error naming the file and how to build it, not a panic.
+    let out = doorslam(&[
+        "place",
+        "eval",
+        town,
+        "--method",
+        "netvlad",
+        "--model",
+        "/nonexistent/m.onnx",
+    ]);
+    assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
+    let err = stderr(&out);
+    assert!(
+        err.contains("/nonexistent/m.onnx") && err.contains("deploy/setup"),
+        "{err}"
+    );
+
+    // With the model deploy/setup built (DOORSLAM_PLACE_MODEL in its env file).
+    let svg = dir.path().join("pr.svg");
+    let out = doorslam(&[
+        "place",
+        "eval",
+        town,
+        "--method",
+        "netvlad",
+        "--int8",
+        "--json",
+        "--svg",
+        svg.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).expect("one JSON object");
+    let keys: Vec<&str> = json
+        .as_object()
+        .unwrap()
+        .keys()
+        .map(String::as_str)
+        .collect();
+    assert_eq!(
+        keys,
+        [
+            "auc",
+            "bytes_per_descriptor",
+            "method",
+            "ms_per_descriptor",
+            "precision_at_recall_0_5",
+            "queries",
+            "recall_at_1"
+        ]
+    );
+    assert_eq!(json["method"], "netvlad");
+    assert_eq!(json["queries"], 120);
+    let recall = json["recall_at_1"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&recall), "{json}");
+    assert!(
+        json["bytes_per_descriptor"].as_f64().unwrap() < 140.0,
+        "{json}"
+    );
+    assert!(std::fs::read_to_string(&svg).unwrap().contains("<polyline"));
 }

@@ -7,6 +7,7 @@ mod dpgo;
 mod eval;
 mod pcm;
 mod pgo;
+mod place;
 mod replay;
 mod service;
 pub(crate) mod sim;
@@ -40,6 +41,8 @@ pub enum Command {
     Dpgo(dpgo::DpgoArgs),
     /// Evaluate trajectories: ATE / RPE against ground truth.
     Eval(eval::EvalArgs),
+    /// Place recognition offline: describe keyframes, evaluate matching, train the BoW vocabulary.
+    Place(place::PlaceArgs),
     /// Simulate worlds, flights and multi-robot pose graphs.
     Sim(sim::SimArgs),
     /// Stereo visual odometry over a KITTI-layout folder: every frame's pose, timing, drift.
@@ -74,6 +77,7 @@ pub fn main() -> ExitCode {
         Command::Pcm(args) => pcm::run(args),
         Command::Dpgo(args) => dpgo::run(args),
         Command::Eval(args) => eval::run(args),
+        Command::Place(args) => place::run(args),
         Command::Sim(args) => sim::run(args),
         Command::Vo(args) => vo::run(args),
         Command::Replay(args) => replay::run(args),

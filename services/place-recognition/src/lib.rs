@@ -1,16 +1,28 @@
 //! # doorslam-place-recognition
 //!
-//! Global place descriptors: an image (or its pooled features) goes through an ONNX model
-//! run by onnxruntime (`ort`), and the output is an L2-normalized vector that robots
-//! exchange at rendezvous and compare by Euclidean distance (paper §III-B).
+//! Global place descriptors (paper §III-B): a keyframe's image becomes one L2-normalized
+//! vector that robots exchange at rendezvous and compare by Euclidean distance.
 //!
-//! Landed so far:
-//! - [`onnx`]: a small writer of ONNX model files, used to generate the projection head of
-//!   the descriptor (`y = normalize(x·W + b)`, NetVLAD's PCA-whitening + L2 step) so tests
-//!   need no downloaded weights;
-//! - [`model`]: loading an ONNX model with onnxruntime and running it on a batch.
+//! - [`netvlad`]: the NetVLAD network (EfficientNet-Lite0 backbone cut mid-way, NetVLAD
+//!   head, PCA-whitening to 128-D) in onnxruntime, built by `model/build_model.py`;
+//! - [`bow`]: the bag-of-words baseline over the front-end's ORB features (vocabulary by
+//!   k-majority, TF-IDF);
+//! - [`describer`]: both behind one interface; [`image`]: preprocessing;
+//! - [`matching`]: distances, also on the int8 wire form with integer dot products;
+//! - [`eval`]: precision-recall of inter-robot matches against ground truth;
+//! - [`onnx`]: a small writer of ONNX files (tests build models without downloads);
+//!   [`model`]: a `[batch, d] -> [batch, d']` model and the onnxruntime environment.
 
+pub mod bow;
+pub mod describer;
+pub mod eval;
+pub mod image;
+pub mod matching;
 pub mod model;
+pub mod netvlad;
 pub mod onnx;
 
+pub use describer::{Describer, Method};
+pub use image::GrayImage;
 pub use model::{DescriptorModel, PlaceRecognitionError};
+pub use netvlad::NetVlad;

@@ -14,12 +14,18 @@ pub enum PlaceRecognitionError {
     RuntimeNotConfigured,
     #[error("cannot load onnxruntime from {path}: {reason}")]
     Runtime { path: PathBuf, reason: String },
+    #[error("model file {path} not found: build it with deploy/setup (or services/place-recognition/model/build_model.py --out {path}) or point DOORSLAM_PLACE_MODEL / --model at an ONNX file with input [batch, 1 or 3, H, W] and output [batch, D]")]
+    ModelMissing { path: PathBuf },
     #[error("cannot load ONNX model {model}: {reason}")]
     Load { model: String, reason: String },
     #[error("model {model}: {reason}")]
     Signature { model: String, reason: String },
     #[error("input has {got} values, expected a multiple of {dim} (batch x {dim})")]
     InputShape { got: usize, dim: usize },
+    #[error("BoW vocabulary {path}: {reason}")]
+    Vocabulary { path: PathBuf, reason: String },
+    #[error("ORB features: {0}")]
+    Orb(String),
     #[error("running model {model}: {reason}")]
     Run { model: String, reason: String },
 }

@@ -1,0 +1,429 @@
+//! `doorslam place ...`: global place descriptors offline (describe, evaluate, vocabulary).
+
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand, ValueEnum};
+use doorslam_ipc::wire::Descriptor;
+use doorslam_place_recognition::bow::{default_vocabulary_path, orb_descriptors, Vocabulary};
+use doorslam_place_recognition::describer::BOW_FEATURES;
+use doorslam_place_recognition::eval::{pr_curve, svg, EvalSet, Keyframe};
+use doorslam_place_recognition::matching::{
+    distance2, nearest, time_brute_force, wire_bytes_per_descriptor, Quantized,
+};
+use doorslam_place_recognition::netvlad::default_model_path;
+use doorslam_place_recognition::{Describer, GrayImage, NetVlad};
+
+#[derive(Debug, Args)]
+pub struct PlaceArgs {
+    #[command(subcommand)]
+    pub command: PlaceCommand,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum PlaceCommand {
+    /// Descriptors of every keyframe of a KITTI / EuRoC folder or a `sim world` output.
+    Describe(DescribeArgs),
+    /// Precision-recall of inter-robot matches against ground truth.
+    Eval(EvalArgs),
+    /// Time brute-force matching: QUERIES x DATABASE random 128-D descriptors, float and int8.
+    BenchMatch(BenchMatchArgs),
+    /// Train the bag-of-words vocabulary (k-majority on ORB descriptors) on the left
+    /// images of dataset folders, `sim world` outputs, folders of PNGs or PNG files.
+    Vocabulary(VocabularyArgs),
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum MethodArg {
+    Netvlad,
+    Bow,
+}
+
+#[derive(Debug, Args)]
+pub struct DescriberArgs {
+    /// Which descriptor. The default is the one that wins on the held-out simulated
+    /// flights (BENCHMARKS.md: today the bag of words; the rule).
+    #[arg(long, value_enum, default_value = "bow")]
+    pub method: MethodArg,
+    /// NetVLAD ONNX model [default: $DOORSLAM_PLACE_MODEL, else
+    /// $DOORSLAM_HOME/models/netvlad-effnetlite0-128.onnx].
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// BoW vocabulary [default: $DOORSLAM_BOW_VOCABULARY, else
+    /// $DOORSLAM_HOME/models/bow-orb-1024.voc].
+    #[arg(long)]
+    pub vocabulary: Option<PathBuf>,
+    /// onnxruntime intra-op threads (1 = the one-core figure).
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
+    /// Every N-th frame is a keyframe.
+    #[arg(long, default_value_t = 1)]
+    pub stride: usize,
+}
+
+#[derive(Debug, Args)]
+pub struct DescribeArgs {
+    pub dir: PathBuf,
+    #[arg(long)]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub describer: DescriberArgs,
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct EvalArgs {
+    #[arg(required = true)]
+    pub dirs: Vec<PathBuf>,
+    #[command(flatten)]
+    pub describer: DescriberArgs,
+    /// Match on the int8 wire form (integer dot products) instead of float.
+    #[arg(long)]
+    pub int8: bool,
+    /// Where to write the precision-recall curve [default: pr_<method>[_int8].svg].
+    #[arg(long)]
+    pub svg: Option<PathBuf>,
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct BenchMatchArgs {
+    #[arg(long, default_value_t = 1000)]
+    pub queries: usize,
+    #[arg(long, default_value_t = 10000)]
+    pub database: usize,
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct VocabularyArgs {
+    #[arg(required = true)]
+    pub dirs: Vec<PathBuf>,
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long, default_value_t = 1024)]
+    pub words: usize,
+    #[arg(long, default_value_t = 10)]
+    pub iterations: usize,
+    /// Every N-th frame trains.
+    #[arg(long, default_value_t = 2)]
+    pub stride: usize,
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(args: PlaceArgs) -> Result<()> {
+    match args.command {
+        PlaceCommand::Describe(a) => describe(a),
+        PlaceCommand::Eval(a) => eval(a),
+        PlaceCommand::Vocabulary(a) => vocabulary(a),
+        PlaceCommand::BenchMatch(a) => bench_match(a),
+    }
+}
+
+fn bench_match(a: BenchMatchArgs) -> Result<()> {
+    let (float_s, int8_s, agree) = time_brute_force(a.queries, a.database);
+    let json = serde_json::json!({
+        "queries": a.queries,
+        "database": a.database,
+        "float_s": float_s,
+        "int8_s": int8_s,
+        "nearest_agree": agree,
+    });
+    if a.json {
+        println!("{json}");
+    } else {
+        println!(
+            "{} x {} brute force: float {float_s:.3} s, int8 {int8_s:.3} s, {agree} nearest neighbours agree",
+            a.queries, a.database
+        );
+    }
+    Ok(())
+}
+
+fn open_describer(a: &DescriberArgs) -> Result<Describer> {
+    Ok(match a.method {
+        MethodArg::Netvlad => {
+            let path = a.model.clone().unwrap_or_else(default_model_path);
+            Describer::NetVlad(NetVlad::from_file(&path, a.threads)?)
+        }
+        MethodArg::Bow => {
+            let path = a.vocabulary.clone().unwrap_or_else(default_vocabulary_path);
+            Describer::BagOfWords(Vocabulary::from_file(&path)?)
+        }
+    })
+}
+
+fn load_image(path: &Path) -> Result<GrayImage> {
+    let (w, h, pixels) = doorslam_dataset::read_gray_png(path)?;
+    GrayImage::new(w as usize, h as usize, pixels)
+        .with_context(|| format!("{}: empty image", path.display()))
+}
+
+/// Descriptors of all keyframes in batches of 8, and the describe time per image
+/// (preprocessing included, PNG decoding excluded).
+fn describe_all(describer: &mut Describer, keyframes: &[Keyframe]) -> Result<(Vec<Vec<f32>>, f64)> {
+    let mut out = Vec::with_capacity(keyframes.len());
+    let mut seconds = 0.0;
+    // One untimed run first: onnxruntime allocates its buffers on the first inference.
+    if let Some(first) = keyframes.first() {
+        describer.describe(&[load_image(&first.image)?])?;
+    }
+    for (i, chunk) in keyframes.chunks(8).enumerate() {
+        let images = chunk
+            .iter()
+            .map(|k| load_image(&k.image))
+            .collect::<Result<Vec<_>>>()?;
+        let start = Instant::now();
+        out.extend(describer.describe(&images)?);
+        seconds += start.elapsed().as_secs_f64();
+        if i % 25 == 24 {
+            eprintln!(
+                "place: {}/{} keyframes described",
+                out.len(),
+                keyframes.len()
+            );
+        }
+    }
+    Ok((out, 1e3 * seconds / keyframes.len().max(1) as f64))
+}
+
+fn describe(a: DescribeArgs) -> Result<()> {
+    let set = EvalSet::load(std::slice::from_ref(&a.dir), a.describer.stride)
+        .or_else(|_| keyframes_without_truth(&a.dir, a.describer.stride))
+        .with_context(|| format!("reading {}", a.dir.display()))?;
+    let mut describer = open_describer(&a.describer)?;
+    let (descriptors, ms) = describe_all(&mut describer, &set.keyframes)?;
+    let mut text = format!(
+        "# doorslam place descriptors: method={} dim={}\n# robot frame values...\n",
+        describer.method().name(),
+        describer.dim()
+    );
+    for (k, d) in set.keyframes.iter().zip(&descriptors) {
+        let values: Vec<String> = d.iter().map(|v| format!("{v:.6}")).collect();
+        text += &format!("{} {} {}\n", k.robot, k.frame, values.join(" "));
+    }
+    std::fs::write(&a.out, text).with_context(|| format!("writing {}", a.out.display()))?;
+    let json = serde_json::json!({
+        "out": a.out.display().to_string(),
+        "method": describer.method().name(),
+        "keyframes": descriptors.len(),
+        "dim": describer.dim(),
+        "ms_per_descriptor": ms,
+    });
+    if a.json {
+        println!("{json}");
+    } else {
+        println!(
+            "{}: {} {} descriptors of dim {}, {ms:.1} ms each",
+            a.out.display(),
+            descriptors.len(),
+            describer.method().name(),
+            describer.dim()
+        );
+    }
+    Ok(())
+}
+
+/// A folder without ground truth still has descriptors (KITTI raw, EuRoC).
+fn keyframes_without_truth(dir: &Path, stride: usize) -> Result<EvalSet> {
+    let data = doorslam_dataset::Dataset::open(dir)?;
+    let keyframes = data
+        .frames
+        .iter()
+        .step_by(stride.max(1))
+        .map(|f| Keyframe {
+            robot: "0".into(),
+            frame: f.index,
+            image: f.left.clone(),
+            pose: nalgebra::Isometry3::identity(),
+        })
+        .collect();
+    Ok(EvalSet {
+        keyframes,
+        positives: Default::default(),
+    })
+}
+
+fn eval(a: EvalArgs) -> Result<()> {
+    let set = EvalSet::load(&a.dirs, a.describer.stride)?;
+    let mut describer = open_describer(&a.describer)?;
+    let method = describer.method().name();
+    if a.int8 && describer.dim() != doorslam_ipc::wire::DESCRIPTOR_DIM {
+        bail!(
+            "--int8 needs {}-D descriptors (the wire form); {method} gives {}",
+            doorslam_ipc::wire::DESCRIPTOR_DIM,
+            describer.dim()
+        );
+    }
+    eprintln!(
+        "place eval: {} keyframes, {} true inter-robot pairs",
+        set.keyframes.len(),
+        set.positives.len() / 2
+    );
+    let (descriptors, ms) = describe_all(&mut describer, &set.keyframes)?;
+    let allowed = |q: usize, d: usize| set.inter_robot(q, d);
+    let (nn, bytes) = if a.int8 {
+        let quantized = descriptors
+            .iter()
+            .enumerate()
+            .map(|(i, d)| Ok(Quantized::new(Descriptor::quantize(i as u64, d)?)))
+            .collect::<Result<Vec<_>>>()?;
+        let nn = nearest(&quantized, &quantized, |x, y| x.distance2(y), allowed);
+        // What α sends at a first rendezvous: all its keyframes in one batch.
+        let robots: std::collections::HashSet<&str> =
+            set.keyframes.iter().map(|k| k.robot.as_str()).collect();
+        let batch = set.keyframes.len() / robots.len().max(1);
+        (nn, wire_bytes_per_descriptor(batch))
+    } else {
+        let nn = nearest(&descriptors, &descriptors, |x, y| distance2(x, y), allowed);
+        // Float: 4 bytes per value (BoW: the non-zero entries, u16 word + f32 weight).
+        let bytes = match describer {
+            Describer::NetVlad(_) => 4.0 * describer.dim() as f64,
+            Describer::BagOfWords(_) => {
+                let nonzero: usize = descriptors
+                    .iter()
+                    .map(|d| d.iter().filter(|v| **v != 0.0).count())
+                    .sum();
+                6.0 * nonzero as f64 / descriptors.len().max(1) as f64
+            }
+        };
+        (nn, bytes)
+    };
+    let curve = pr_curve(&set, &nn);
+    let label = format!("{method}{}", if a.int8 { " int8" } else { "" });
+    let svg_path = a.svg.clone().unwrap_or_else(|| {
+        PathBuf::from(format!(
+            "pr_{method}{}.svg",
+            if a.int8 { "_int8" } else { "" }
+        ))
+    });
+    std::fs::write(&svg_path, svg(&[(&label, &curve)]))
+        .with_context(|| format!("writing {}", svg_path.display()))?;
+    eprintln!(
+        "place eval: PR curve in {}; {} queries have a true match",
+        svg_path.display(),
+        curve.queries_with_positive
+    );
+    let json = serde_json::json!({
+        "method": method,
+        "queries": curve.queries,
+        "recall_at_1": curve.recall_at_1,
+        "precision_at_recall_0_5": curve.precision_at_recall_0_5,
+        "auc": curve.auc,
+        "bytes_per_descriptor": bytes,
+        "ms_per_descriptor": ms,
+    });
+    if a.json {
+        println!("{json}");
+    } else {
+        println!(
+            "{label}: {} queries, recall@1 {:.3}, precision at recall 0.5 {:.3}, AUC {:.3}, {bytes:.0} B/descriptor, {ms:.1} ms/descriptor",
+            curve.queries, curve.recall_at_1, curve.precision_at_recall_0_5, curve.auc
+        );
+    }
+    std::io::stdout().flush()?;
+    Ok(())
+}
+
+fn vocabulary(a: VocabularyArgs) -> Result<()> {
+    let start = Instant::now();
+    let mut images = Vec::new();
+    for dir in &a.dirs {
+        let set = if dir.is_file() {
+            single_image(dir)
+        } else {
+            keyframes_of_any(dir, a.stride)?
+        };
+        for k in &set.keyframes {
+            images.push(orb_descriptors(&load_image(&k.image)?, BOW_FEATURES)?);
+        }
+        if dir.is_dir() {
+            eprintln!(
+                "place vocabulary: {} ({} images so far)",
+                dir.display(),
+                images.len()
+            );
+        }
+    }
+    let voc = Vocabulary::train(&images, a.words, a.iterations, 1).with_context(|| {
+        format!(
+            "{} training images have fewer than {} ORB features",
+            images.len(),
+            a.words
+        )
+    })?;
+    if let Some(parent) = a.out.parent() {
+        std::fs::create_dir_all(parent)?;
+    }
+    std::fs::write(&a.out, voc.to_bytes())
+        .with_context(|| format!("writing {}", a.out.display()))?;
+    let json = serde_json::json!({
+        "out": a.out.display().to_string(),
+        "words": a.words,
+        "images": images.len(),
+        "features": images.iter().map(Vec::len).sum::<usize>(),
+        "seconds": start.elapsed().as_secs_f64(),
+    });
+    if a.json {
+        println!("{json}");
+    } else {
+        println!(
+            "{}: {} words from {} images",
+            a.out.display(),
+            a.words,
+            images.len()
+        );
+    }
+    Ok(())
+}
+
+fn single_image(path: &Path) -> EvalSet {
+    EvalSet {
+        keyframes: vec![Keyframe {
+            robot: "0".into(),
+            frame: 0,
+            image: path.to_path_buf(),
+            pose: nalgebra::Isometry3::identity(),
+        }],
+        positives: Default::default(),
+    }
+}
+
+/// Keyframes of a folder with or without ground truth, or of a plain folder of PNGs.
+fn keyframes_of_any(dir: &Path, stride: usize) -> Result<EvalSet> {
+    if let Ok(set) = EvalSet::load(&[dir.to_path_buf()], stride) {
+        return Ok(set);
+    }
+    if let Ok(set) = keyframes_without_truth(dir, stride) {
+        return Ok(set);
+    }
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("reading {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "png"))
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        bail!("{}: no dataset and no PNG images", dir.display());
+    }
+    Ok(EvalSet {
+        keyframes: files
+            .into_iter()
+            .step_by(stride.max(1))
+            .enumerate()
+            .map(|(i, image)| Keyframe {
+                robot: "0".into(),
+                frame: i,
+                image,
+                pose: nalgebra::Isometry3::identity(),
+            })
+            .collect(),
+        positives: Default::default(),
+    })
+}
