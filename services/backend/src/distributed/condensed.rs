@@ -221,12 +221,15 @@ pub(crate) fn pcm_inliers(
 /// Solves the separator graph of the team `graphs` (origin → edges) that contains pose
 /// `mine`: chordal initialization and Levenberg-Marquardt with the lowest key of that
 /// connected part (the lowest robot's first pose) fixed at the identity — the team frame.
+/// Separator estimates, and the closures (key, key) PCM rejected.
+pub(crate) type Solved = (BTreeMap<u64, SE3>, Vec<(u64, u64)>);
+
 /// Returns the separator estimates and the closures PCM rejected.
 pub(crate) fn solve_separators(
     graphs: &BTreeMap<u8, Vec<CondensedEdge>>,
     mine: u64,
     pcm: Option<PcmSettings>,
-) -> Result<(BTreeMap<u64, SE3>, Vec<(u64, u64)>), DpgoError> {
+) -> Result<Solved, DpgoError> {
     let mut g = PoseGraph::<SE3>::new();
     let inliers = pcm.map(|p| pcm_inliers(graphs, p)).transpose()?;
     let inter = |e: &CondensedEdge| key::robot(e.a) != key::robot(e.b);
