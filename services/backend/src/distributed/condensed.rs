@@ -261,22 +261,7 @@ pub(crate) fn solve_separators(
     }
     // The connected part that holds `mine`; its lowest key anchors.
     let start = g.index_of(mine).unwrap_or_default();
-    let reach = g.reachable_from(start);
-    let mut part = PoseGraph::<SE3>::new();
-    for (p, k) in g.keys().iter().enumerate() {
-        if reach[p] {
-            part.add_pose(*k, SE3::identity());
-        }
-    }
-    for e in g.edges() {
-        if reach[e.i] && reach[e.j] {
-            let (i, j) = (
-                part.index_of(g.keys()[e.i]).unwrap_or_default(),
-                part.index_of(g.keys()[e.j]).unwrap_or_default(),
-            );
-            part.add_edge(i, j, e.measured, e.information)?;
-        }
-    }
+    let mut part = reachable_part(&g, start)?;
     let anchor = 0; // keys were added in ascending order: the lowest robot's first pose.
     if part.len() > 1 {
         SE3::chordal(&mut part, anchor)?;
@@ -290,6 +275,27 @@ pub(crate) fn solve_separators(
             .collect(),
         rejected,
     ))
+}
+
+/// The poses of `g` connected to pose `start` (same order, same values) and their edges.
+fn reachable_part(g: &PoseGraph<SE3>, start: usize) -> Result<PoseGraph<SE3>, DpgoError> {
+    let reach = g.reachable_from(start);
+    let mut part = PoseGraph::<SE3>::new();
+    for (p, k) in g.keys().iter().enumerate() {
+        if reach[p] {
+            part.add_pose(*k, g.poses()[p]);
+        }
+    }
+    for e in g.edges() {
+        if reach[e.i] && reach[e.j] {
+            let (i, j) = (
+                part.index_of(g.keys()[e.i]).unwrap_or_default(),
+                part.index_of(g.keys()[e.j]).unwrap_or_default(),
+            );
+            part.add_edge(i, j, e.measured, e.information)?;
+        }
+    }
+    Ok(part)
 }
 
 /// The robot's interior poses with its separators fixed at `fixed`: Levenberg-Marquardt on
@@ -332,28 +338,9 @@ pub(crate) fn solve_interior(
     if g.len() > 1 {
         // Interior poses no edge ties to a separator keep their estimate (the solver would
         // call them disconnected).
-        let reach = g.reachable_from(0);
-        if reach.iter().all(|r| *r) {
-            optimize(&mut g, 0, &SolverOptions::default())?;
-        } else {
-            let mut sub = PoseGraph::<SE3>::new();
-            for (p, k) in g.keys().iter().enumerate() {
-                if reach[p] {
-                    sub.add_pose(*k, g.poses()[p]);
-                }
-            }
-            for e in g.edges() {
-                if reach[e.i] && reach[e.j] {
-                    let (i, j) = (
-                        sub.index_of(g.keys()[e.i]).unwrap_or_default(),
-                        sub.index_of(g.keys()[e.j]).unwrap_or_default(),
-                    );
-                    sub.add_edge(i, j, e.measured, e.information)?;
-                }
-            }
-            optimize(&mut sub, 0, &SolverOptions::default())?;
-            g = sub;
-        }
+        let mut sub = reachable_part(&g, 0)?;
+        optimize(&mut sub, 0, &SolverOptions::default())?;
+        g = sub;
         for (k, x) in g.keys().iter().zip(g.poses()).skip(1) {
             out[*k as usize] = *x;
         }

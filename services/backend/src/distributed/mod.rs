@@ -662,6 +662,20 @@ impl Agent {
         seen
     }
 
+    /// The own poses a step can solve in the anchor's frame: connected to the gauge or to a
+    /// closure whose neighbour estimate (`other`, per closure) is known; `None` if none.
+    fn active<T>(&self, gauge: Option<usize>, other: &[Option<T>]) -> Option<Vec<bool>> {
+        let seeds = gauge.into_iter().chain(
+            self.closures
+                .iter()
+                .zip(other)
+                .filter(|(_, o)| o.is_some())
+                .map(|(c, _)| c.own),
+        );
+        let active = self.reachable(seeds);
+        active.iter().any(|a| *a).then_some(active)
+    }
+
     /// One iteration of the current stage. Returns whether anything was solved.
     pub fn step(&mut self) -> Result<bool, DpgoError> {
         if self.options.method == Method::Condensed {
@@ -756,17 +770,9 @@ impl Agent {
 
     fn step_rotations(&mut self, gauge: Option<usize>) -> Result<bool, DpgoError> {
         let other = self.fixed_rotations();
-        let seeds = gauge.into_iter().chain(
-            self.closures
-                .iter()
-                .zip(&other)
-                .filter(|(_, o)| o.is_some())
-                .map(|(c, _)| c.own),
-        );
-        let active = self.reachable(seeds);
-        if !active.iter().any(|a| *a) {
+        let Some(active) = self.active(gauge, &other) else {
             return Ok(false);
-        }
+        };
         let fixed_own: Vec<Option<Matrix3<f64>>> = (0..self.keys.len())
             .map(|p| (Some(p) == gauge).then(|| self.relaxed[p]))
             .collect();
@@ -807,17 +813,9 @@ impl Agent {
 
     fn step_translations(&mut self, gauge: Option<usize>) -> Result<bool, DpgoError> {
         let other = self.fixed_poses();
-        let seeds = gauge.into_iter().chain(
-            self.closures
-                .iter()
-                .zip(&other)
-                .filter(|(_, o)| o.is_some())
-                .map(|(c, _)| c.own),
-        );
-        let active = self.reachable(seeds);
-        if !active.iter().any(|a| *a) {
+        let Some(active) = self.active(gauge, &other) else {
             return Ok(false);
-        }
+        };
         let rotations: Vec<Matrix3<f64>> = self
             .poses
             .iter()
@@ -867,17 +865,9 @@ impl Agent {
 
     fn step_refine(&mut self, gauge: Option<usize>) -> Result<bool, DpgoError> {
         let other = self.fixed_poses();
-        let seeds = gauge.into_iter().chain(
-            self.closures
-                .iter()
-                .zip(&other)
-                .filter(|(_, o)| o.is_some())
-                .map(|(c, _)| c.own),
-        );
-        let active = self.reachable(seeds);
-        if !active.iter().any(|a| *a) {
+        let Some(active) = self.active(gauge, &other) else {
             return Ok(false);
-        }
+        };
         let options = SolverOptions {
             max_iterations: self.options.refine_iterations,
             ..SolverOptions::default()
