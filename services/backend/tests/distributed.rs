@@ -265,6 +265,31 @@ fn malformed_stale_and_out_of_order_messages_change_nothing() {
 }
 
 #[test]
+fn poses_out_of_order_or_twice_and_foreign_edges_are_refused_by_name() {
+    let mut a = Agent::new(0, RobotId::new("r0").unwrap(), 1, AgentOptions::default());
+    let k = |r, i| key::symbol(r, i).unwrap();
+    a.add_pose(k(0, 5), SE3::identity()).unwrap();
+    let e = a.add_pose(k(0, 3), SE3::identity()).unwrap_err();
+    assert!(
+        e.to_string().contains("a3") && e.to_string().contains("a5"),
+        "{e}"
+    );
+    assert!(a.add_pose(k(0, 5), SE3::identity()).is_err());
+    let e = a.add_pose(k(1, 6), SE3::identity()).unwrap_err();
+    assert!(e.to_string().contains("b6"), "{e}");
+    let info = matrix_from_upper(&upper_from_diagonal([1.0; 6]));
+    let e = a
+        .add_closure(k(0, 5), k(0, 6), SE3::identity(), info)
+        .unwrap_err();
+    assert!(matches!(e, DpgoError::NotInterRobot { .. }), "{e}");
+    let mut bad = info;
+    bad[(2, 2)] = -1.0;
+    assert!(a
+        .add_closure(k(0, 5), k(1, 0), SE3::identity(), bad)
+        .is_err());
+}
+
+#[test]
 fn a_malformed_condensed_graph_is_refused() {
     let (mut a, mut b) = pair(Method::Condensed);
     a.step().unwrap();

@@ -77,6 +77,8 @@ pub enum DpgoError {
     NoRobot(String),
     #[error("pose {0} is not known: add it before its edges")]
     UnknownPose(String),
+    #[error("pose {key} is added after {last}: add a robot's poses in index order")]
+    OutOfOrder { key: String, last: String },
     #[error("pose {0} is added twice")]
     DuplicatePose(String),
     #[error(
@@ -368,6 +370,16 @@ impl Agent {
         self.own(k)?;
         if self.index.contains_key(&k) {
             return Err(DpgoError::DuplicatePose(key::label(k)));
+        }
+        // The first pose is the gauge and index-consecutive poses are the odometry chain
+        // the condensed method compounds: poses come in index order.
+        if let Some(&last) = self.keys.last() {
+            if key::index(k) < key::index(last) {
+                return Err(DpgoError::OutOfOrder {
+                    key: key::label(k),
+                    last: key::label(last),
+                });
+            }
         }
         self.index.insert(k, self.keys.len());
         self.keys.push(k);
