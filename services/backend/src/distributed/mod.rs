@@ -202,12 +202,8 @@ struct Neighbor {
     /// The neighbour's separator estimates in its (= our) anchor frame.
     rotations: BTreeMap<u64, Matrix3<f64>>,
     poses: BTreeMap<u64, SE3>,
-    /// Received sequences of the neighbour's current epoch, for acknowledgements.
-    received: BTreeSet<u64>,
-    received_epoch: Option<u64>,
-    /// Every sequence below this was received; `received` holds those above.
-    received_next: u64,
-    ack_due: bool,
+    /// The neighbour's `PoseEstimates` received, for acknowledgements.
+    received: Received,
     ack_sequence: u64,
     /// Sending side: next sequence, messages in flight (sequence → step sent, contents),
     /// and what the neighbour is known to hold.
@@ -221,10 +217,74 @@ struct Neighbor {
     graphs_held: BTreeMap<u8, u64>,
     graphs_in_flight: BTreeMap<u64, (u64, u8, u64)>,
     graph_sequence: u64,
-    graph_received_epoch: Option<u64>,
-    graph_received_next: u64,
-    graph_received: BTreeSet<u64>,
-    graph_ack_due: bool,
+    graph_received: Received,
+}
+
+/// What arrived of one kind from a neighbour, by its epoch and sequence.
+#[derive(Debug, Default)]
+struct Received {
+    epoch: Option<u64>,
+    /// Every sequence below this was received; `above` holds those received beyond it.
+    next: u64,
+    above: BTreeSet<u64>,
+    ack_due: bool,
+}
+
+/// How a message's epoch relates to the neighbour's we know.
+#[derive(Debug, PartialEq, Eq)]
+enum Arrival {
+    /// The current epoch (or the first one heard).
+    Current,
+    /// A higher epoch: the neighbour restarted and lost what we sent it.
+    Restarted,
+    /// An older epoch: stale, not recorded.
+    Stale,
+}
+
+impl Received {
+    /// Records a message (epoch, sequence); an acknowledgement becomes due unless stale.
+    fn arrive(&mut self, epoch: u64, sequence: u64) -> Arrival {
+        let arrival = match self.epoch {
+            Some(e) if epoch < e => return Arrival::Stale,
+            Some(e) if epoch > e => Arrival::Restarted,
+            _ => Arrival::Current,
+        };
+        if self.epoch != Some(epoch) {
+            *self = Self {
+                epoch: Some(epoch),
+                ..Self::default()
+            };
+        }
+        if sequence >= self.next {
+            self.above.insert(sequence);
+            while self.above.remove(&self.next) {
+                self.next += 1;
+            }
+        }
+        self.ack_due = true;
+        arrival
+    }
+
+    /// The acknowledgement due, of `kind`, once: our epoch and ack sequence in the header.
+    fn take_ack(
+        &mut self,
+        id: &RobotId,
+        own_epoch: u64,
+        sequence: u64,
+        kind: Kind,
+    ) -> Option<Message> {
+        let epoch = self.epoch.filter(|_| self.ack_due)?;
+        self.ack_due = false;
+        Some(ack_message(
+            id,
+            own_epoch,
+            sequence,
+            kind,
+            epoch,
+            self.next,
+            &self.above,
+        ))
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -957,19 +1017,12 @@ impl Agent {
             return Ok(out);
         };
         // Acknowledge what we received of the neighbour's current epoch.
-        if n.ack_due {
-            if let Some(epoch) = n.received_epoch {
-                out.push(ack_message(
-                    &self.id,
-                    self.epoch,
-                    n.ack_sequence,
-                    epoch,
-                    n.received_next,
-                    &n.received,
-                ));
-                n.ack_sequence += 1;
-                n.ack_due = false;
-            }
+        if let Some(ack) =
+            n.received
+                .take_ack(&self.id, self.epoch, n.ack_sequence, Kind::PoseEstimates)
+        {
+            n.ack_sequence += 1;
+            out.push(ack);
         }
         // Lost: unacknowledged for `resend_after` steps.
         let lost: Vec<u64> = n
@@ -1143,26 +1196,17 @@ impl Agent {
                     )));
                 }
                 // Acknowledge whatever we accept or ignore as stale: it arrived.
-                if n.received_epoch.is_none_or(|e| h.epoch > e) {
-                    if n.received_epoch.is_some() {
-                        // The neighbour restarted: it lost what we sent it.
+                match n.received.arrive(h.epoch, h.sequence) {
+                    Arrival::Stale => {
+                        self.stats.ignored_stale += 1;
+                        return Ok(false);
+                    }
+                    Arrival::Restarted => {
                         n.confirmed = Sent::default();
                         n.in_flight.clear();
                     }
-                    n.received_epoch = Some(h.epoch);
-                    n.received.clear();
-                    n.received_next = 0;
-                } else if n.received_epoch.is_some_and(|e| h.epoch < e) {
-                    self.stats.ignored_stale += 1;
-                    return Ok(false);
+                    Arrival::Current => {}
                 }
-                if h.sequence >= n.received_next {
-                    n.received.insert(h.sequence);
-                    while n.received.remove(&n.received_next) {
-                        n.received_next += 1;
-                    }
-                }
-                n.ack_due = true;
                 // Within an epoch sequences only grow; a new epoch is a restart.
                 let fresh = n
                     .state
@@ -1278,7 +1322,7 @@ impl Agent {
             && self.neighbors.iter().all(|(&id, n)| {
                 !n.present
                     || (n.graphs_in_flight.is_empty()
-                        && !n.graph_ack_due
+                        && !n.graph_received.ack_due
                         && self
                             .graphs
                             .iter()
@@ -1359,23 +1403,12 @@ impl Agent {
         let Some(n) = self.neighbors.get_mut(&neighbor) else {
             return Ok(out);
         };
-        if n.graph_ack_due {
-            if let Some(epoch) = n.graph_received_epoch {
-                let mut ack = ack_message(
-                    &self.id,
-                    self.epoch,
-                    n.ack_sequence,
-                    epoch,
-                    n.graph_received_next,
-                    &n.graph_received,
-                );
-                if let Body::Ack(a) = &mut ack.body {
-                    a.kind = Kind::SeparatorGraph;
-                }
-                n.ack_sequence += 1;
-                n.graph_ack_due = false;
-                out.push(ack);
-            }
+        if let Some(ack) =
+            n.graph_received
+                .take_ack(&self.id, self.epoch, n.ack_sequence, Kind::SeparatorGraph)
+        {
+            n.ack_sequence += 1;
+            out.push(ack);
         }
         let lost: Vec<u64> = n
             .graphs_in_flight
@@ -1488,25 +1521,17 @@ impl Agent {
                 reason: "no closure with this robot".into(),
             });
         };
-        if n.graph_received_epoch.is_none_or(|e| h.epoch > e) {
-            if n.graph_received_epoch.is_some() {
+        match n.graph_received.arrive(h.epoch, h.sequence) {
+            Arrival::Stale => {
+                self.stats.ignored_stale += 1;
+                return Ok(false);
+            }
+            Arrival::Restarted => {
                 n.graphs_held.clear();
                 n.graphs_in_flight.clear();
             }
-            n.graph_received_epoch = Some(h.epoch);
-            n.graph_received.clear();
-            n.graph_received_next = 0;
-        } else if n.graph_received_epoch.is_some_and(|e| h.epoch < e) {
-            self.stats.ignored_stale += 1;
-            return Ok(false);
+            Arrival::Current => {}
         }
-        if h.sequence >= n.graph_received_next {
-            n.graph_received.insert(h.sequence);
-            while n.graph_received.remove(&n.graph_received_next) {
-                n.graph_received_next += 1;
-            }
-        }
-        n.graph_ack_due = true;
         // The sender holds it: no need to send it back.
         let held = n.graphs_held.entry(g.origin).or_insert(0);
         *held = (*held).max(g.version);
@@ -1586,6 +1611,7 @@ fn ack_message(
     id: &RobotId,
     own_epoch: u64,
     sequence: u64,
+    kind: Kind,
     epoch: u64,
     next: u64,
     received: &BTreeSet<u64>,
@@ -1610,7 +1636,7 @@ fn ack_message(
         },
         Body::Ack(Ack {
             epoch,
-            kind: Kind::PoseEstimates,
+            kind,
             next,
             received: ranges.split_off(skip),
         }),
