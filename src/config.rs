@@ -23,6 +23,8 @@ pub struct RobotConfig {
     pub up: UpSection,
     #[serde(default)]
     pub team: doorslam_team::runner::TeamSection,
+    #[serde(default)]
+    pub rendezvous: doorslam_rendezvous::RendezvousSection,
 }
 
 /// `[sim_keyframes]`: the simulation stand-in for the front-end (never visual odometry).
@@ -106,6 +108,27 @@ impl RobotConfig {
         Ok(config)
     }
 
+    /// The robot's stereo calibration: `[rendezvous] calibration` if set, else the
+    /// replayed dataset's (`[camera.replay] path`).
+    pub fn calibration(&self) -> Result<doorslam_dataset::StereoCalibration> {
+        if let Some(path) = &self.rendezvous.calibration {
+            return doorslam_dataset::StereoCalibration::from_kitti(path)
+                .with_context(|| format!("rendezvous.calibration = {}", path.display()));
+        }
+        match (&self.camera.source, &self.camera.replay) {
+            (doorslam_camera::CameraSource::Replay, Some(replay)) => {
+                doorslam_dataset::Dataset::open(&replay.path)
+                    .and_then(|d| d.calibration())
+                    .with_context(|| {
+                        format!("calibration of the replayed dataset {}", replay.path.display())
+                    })
+            }
+            _ => bail!(
+                "no stereo calibration: set rendezvous.calibration (a KITTI calib.txt) or replay a dataset"
+            ),
+        }
+    }
+
     /// The config at `path`, or the built-in defaults when no file is given.
     pub fn load_or_default(path: Option<&PathBuf>) -> Result<Self> {
         match path {
@@ -126,6 +149,7 @@ impl RobotConfig {
         self.camera.validate()?;
         self.backend.validate()?;
         self.team.validate()?;
+        self.rendezvous.validate().map_err(anyhow::Error::msg)?;
         if self.sim_keyframes.every == 0 {
             bail!("sim_keyframes.every must be >= 1");
         }

@@ -208,6 +208,7 @@ lease_ms = {lease}
 retransmit_ms = 300
 write_every_ms = 200
 run_dir = "{run}"
+pieces = "standin"
 
 [team.standin]
 keyframes = {keyframes}

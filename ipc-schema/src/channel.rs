@@ -14,6 +14,9 @@
 //!   busy) drops the sample. Senders count samples that reached fewer receivers than were
 //!   connected ([`Sender::undelivered`]), and the back-end logs any gap in keyframe ids.
 //!
+//! The relay between the team link and the back-end (`team-in`, `team-out`) is reliable but
+//! keeps no history ([`Topic::buffers`]): each end announces itself when it (re)starts.
+//!
 //! Crash recovery: reliable publishers keep their last [`RELIABLE_HISTORY`] samples, and a
 //! subscriber that connects (a consumer restarted after a crash) is handed them first, in
 //! order; consumers skip what they already have (the back-end by keyframe id). The history
@@ -82,20 +85,14 @@ pub(crate) fn open<T: Debug + ZeroCopySend + 'static>(
         name: name.clone(),
         reason: format!("{e:?}"),
     })?;
-    let builder = node.service_builder(&sname).publish_subscribe::<T>();
-    let builder = if topic.lossy() {
-        // Old frames are worthless to a consumer that connects late.
-        builder
-            .enable_safe_overflow(true)
-            .subscriber_max_buffer_size(2)
-            .history_size(0)
-    } else {
-        builder
-            .enable_safe_overflow(false)
-            .subscriber_max_buffer_size(RELIABLE_BUFFER)
-            .history_size(RELIABLE_HISTORY)
-    };
-    let pubsub = builder
+    // Old frames are worthless to a consumer that connects late (lossy: safe overflow).
+    let (buffer, history) = topic.buffers();
+    let pubsub = node
+        .service_builder(&sname)
+        .publish_subscribe::<T>()
+        .enable_safe_overflow(topic.lossy())
+        .subscriber_max_buffer_size(buffer)
+        .history_size(history)
         .max_publishers(2)
         .max_subscribers(8)
         .open_or_create()

@@ -33,9 +33,10 @@ pub use service::{
     IpcError, Topic,
 };
 pub use shm::{
-    Feature, FrameError, FrameHeader, ImageWriter, Keyframe, KeyframeSource, LoopClosure,
-    OdometryEdge, PlaceDescriptor, PoseEstimate, StereoFrame, FRAME_HAS_TRUTH, MAX_DESCRIPTOR_DIM,
-    MAX_FRAME_HEIGHT, MAX_FRAME_PIXELS, MAX_FRAME_WIDTH, MAX_KEYFRAME_FEATURES, SCHEMA_VERSION,
+    EnvelopeEvent, EnvelopeTooLong, Feature, FrameError, FrameHeader, ImageWriter, Keyframe,
+    KeyframeSource, LoopClosure, OdometryEdge, PlaceDescriptor, PoseEstimate, StereoFrame,
+    WireEnvelope, FRAME_HAS_TRUTH, MAX_DESCRIPTOR_DIM, MAX_ENVELOPE_BYTES, MAX_FRAME_HEIGHT,
+    MAX_FRAME_PIXELS, MAX_FRAME_WIDTH, MAX_KEYFRAME_FEATURES, SCHEMA_VERSION,
 };
 
 /// Re-exported so service crates use the exact iceoryx2 this schema was built against.

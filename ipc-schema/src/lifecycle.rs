@@ -75,3 +75,39 @@ impl Lifecycle {
         sd_notify("STOPPING=1");
     }
 }
+
+/// Why a start counter could not be read or written.
+#[derive(Debug, thiserror::Error)]
+#[error("{path}: {reason}")]
+pub struct EpochError {
+    pub path: std::path::PathBuf,
+    pub reason: String,
+}
+
+/// Reads the start counter `<dir>/<name>`, adds one and writes it back atomically
+/// (temporary file + rename): a service's epoch, which every message it sends carries so
+/// that peers can tell a restarted sender (with fresh sequences) from stale messages.
+/// A missing file counts as 0; anything else than a number is an error naming the file.
+pub fn next_epoch(dir: &std::path::Path, name: &str) -> Result<u64, EpochError> {
+    let path = dir.join(name);
+    let fail = |reason: String| EpochError {
+        path: path.clone(),
+        reason,
+    };
+    std::fs::create_dir_all(dir).map_err(|e| fail(format!("cannot create the folder: {e}")))?;
+    let previous = match std::fs::read_to_string(&path) {
+        Ok(text) => text
+            .trim()
+            .parse::<u64>()
+            .map_err(|e| fail(format!("not an epoch number: {e}")))?,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => 0,
+        Err(e) => return Err(fail(e.to_string())),
+    };
+    let epoch = previous
+        .checked_add(1)
+        .ok_or_else(|| fail("epoch counter exhausted".into()))?;
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, format!("{epoch}\n")).map_err(|e| fail(e.to_string()))?;
+    std::fs::rename(&tmp, &path).map_err(|e| fail(e.to_string()))?;
+    Ok(epoch)
+}

@@ -34,6 +34,11 @@ pub enum Topic {
     Descriptors,
     Closures,
     Estimates,
+    /// Team link → back-end: peers present/absent and the back-end messages they sent
+    /// ([`crate::WireEnvelope`]).
+    TeamIn,
+    /// Back-end → team link: the back-end's messages for each peer.
+    TeamOut,
 }
 
 impl Topic {
@@ -45,6 +50,22 @@ impl Topic {
             Topic::Descriptors => "descriptors",
             Topic::Closures => "closures",
             Topic::Estimates => "estimates",
+            Topic::TeamIn => "team-in",
+            Topic::TeamOut => "team-out",
+        }
+    }
+
+    /// Samples a subscriber buffers and a publisher keeps for late subscribers, as
+    /// (buffer, history). Frames: the two newest, no history. The relay between the team
+    /// link and the back-end carries large envelopes (256 KiB each, see
+    /// [`crate::WireEnvelope`]) and keeps no history: both ends announce themselves when
+    /// they (re)start instead, and an envelope replayed to a restarted process would be
+    /// handled twice. Everything else: [`crate::RELIABLE_BUFFER`] and half of it.
+    pub fn buffers(self) -> (usize, usize) {
+        match self {
+            Topic::Frames => (2, 0),
+            Topic::TeamIn | Topic::TeamOut => (64, 0),
+            _ => (crate::RELIABLE_BUFFER, crate::RELIABLE_HISTORY),
         }
     }
 

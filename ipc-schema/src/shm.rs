@@ -361,6 +361,126 @@ pub struct PoseEstimate {
     pub pose: [f64; 7],
 }
 
+/// Largest encoded wire message relayed between the team link and the back-end (a
+/// `SeparatorGraph` of the wire's most edges, 1024 × 82 B, fits with room to spare).
+pub const MAX_ENVELOPE_BYTES: usize = 256 * 1024;
+
+/// What a [`WireEnvelope`] says.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u32)]
+pub enum EnvelopeEvent {
+    /// One encoded wire message (`doorslam_ipc::wire::Message`): from the peer (team-in,
+    /// with the header the peer's team link sent) or for the peer (team-out).
+    Message = 0,
+    /// Team-in: the peer said Hello; `epoch` is the peer's team-link epoch.
+    PeerPresent = 1,
+    /// Team-in: the peer left radio range (or stopped).
+    PeerAbsent = 2,
+    /// Team-in: the team link (re)started with epoch `epoch`; whatever it had not yet
+    /// delivered is lost, so the back-end sends its state again.
+    TeamStarted = 3,
+    /// Team-out: the back-end (re)started with epoch `epoch`; the team link starts a new
+    /// epoch of its own so that peers send their state again.
+    BackendStarted = 4,
+}
+
+impl TryFrom<u32> for EnvelopeEvent {
+    /// The value received, which names no event this schema knows.
+    type Error = u32;
+    fn try_from(v: u32) -> Result<Self, u32> {
+        Ok(match v {
+            0 => Self::Message,
+            1 => Self::PeerPresent,
+            2 => Self::PeerAbsent,
+            3 => Self::TeamStarted,
+            4 => Self::BackendStarted,
+            other => return Err(other),
+        })
+    }
+}
+
+/// Relay between the team link and the back-end of one robot (topics `team-in`,
+/// `team-out`): presence of peers and the distributed back-end's wire messages. The bytes
+/// are `MaybeUninit` (like [`StereoFrame`]'s images) so that a 100-byte message does not
+/// pay for zeroing 256 KiB; [`WireEnvelope::write`] is the only way to fill one.
+#[repr(C)]
+#[derive(ZeroCopySend)]
+#[type_name("doorslam::v1::WireEnvelope")]
+pub struct WireEnvelope {
+    /// An [`EnvelopeEvent`] value.
+    pub event: u32,
+    /// The peer's robot number (0 = 'a'); for `TeamStarted`/`BackendStarted`, this robot's.
+    pub peer_robot: u32,
+    /// See [`EnvelopeEvent`]: a team-link or back-end epoch.
+    pub epoch: u64,
+    len: u32,
+    reserved: u32,
+    bytes: [MaybeUninit<u8>; MAX_ENVELOPE_BYTES],
+}
+
+/// A message too long for a [`WireEnvelope`].
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("wire message of {len} bytes exceeds the envelope's {MAX_ENVELOPE_BYTES}")]
+pub struct EnvelopeTooLong {
+    pub len: usize,
+}
+
+impl core::fmt::Debug for WireEnvelope {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.debug_struct("WireEnvelope")
+            .field("event", &self.event)
+            .field("peer_robot", &self.peer_robot)
+            .field("epoch", &self.epoch)
+            .field("len", &self.len)
+            .finish_non_exhaustive()
+    }
+}
+
+impl WireEnvelope {
+    /// Fills a loaned sample in place: the fields and `bytes` (one copy).
+    pub fn write(
+        slot: &mut MaybeUninit<WireEnvelope>,
+        event: EnvelopeEvent,
+        peer_robot: u32,
+        epoch: u64,
+        bytes: &[u8],
+    ) -> Result<(), EnvelopeTooLong> {
+        if bytes.len() > MAX_ENVELOPE_BYTES {
+            return Err(EnvelopeTooLong { len: bytes.len() });
+        }
+        let p = slot.as_mut_ptr();
+        // SAFETY: `p` points to a valid (uninitialized) WireEnvelope; `bytes` fits in the
+        // array (checked above); the fields are plain data written in place. The length is
+        // written last, with the bytes it declares already there.
+        unsafe {
+            core::ptr::copy_nonoverlapping(
+                bytes.as_ptr(),
+                core::ptr::addr_of_mut!((*p).bytes).cast::<u8>(),
+                bytes.len(),
+            );
+            core::ptr::addr_of_mut!((*p).event).write(event as u32);
+            core::ptr::addr_of_mut!((*p).peer_robot).write(peer_robot);
+            core::ptr::addr_of_mut!((*p).epoch).write(epoch);
+            core::ptr::addr_of_mut!((*p).reserved).write(0);
+            core::ptr::addr_of_mut!((*p).len).write(bytes.len() as u32);
+        }
+        Ok(())
+    }
+
+    /// The event, or the unknown value.
+    pub fn event(&self) -> Result<EnvelopeEvent, u32> {
+        EnvelopeEvent::try_from(self.event)
+    }
+
+    /// The message bytes (empty for presence events).
+    pub fn bytes(&self) -> &[u8] {
+        let n = (self.len as usize).min(MAX_ENVELOPE_BYTES);
+        // SAFETY: envelopes are only filled by `write`, which wrote the first `len` bytes
+        // (at most MAX_ENVELOPE_BYTES) before it wrote `len`.
+        unsafe { core::slice::from_raw_parts(self.bytes.as_ptr() as *const u8, n) }
+    }
+}
+
 const _: () = assert!(core::mem::size_of::<Feature>() == 52);
 const _: () = assert!(core::mem::size_of::<Keyframe>() == 96 + 52 * MAX_KEYFRAME_FEATURES);
 const _: () = assert!(core::mem::size_of::<OdometryEdge>() == 32 + 8 * 28);

@@ -64,7 +64,19 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             let flag = stop.clone();
             ctrlc::set_handler(move || flag.store(true, std::sync::atomic::Ordering::SeqCst))?;
             let index = u8::try_from(config.robot.index)?;
-            let status = doorslam_team::runner::run(&config.team, &config.robot.id, index, &stop)?;
+            let status = match config.team.pieces {
+                doorslam_team::runner::PiecesKind::Standin => {
+                    tracing::warn!("team: stand-in pieces (simulated keyframes and descriptors, a truth-table verifier): a test of the link, not SLAM");
+                    doorslam_team::runner::run(&config.team, &config.robot.id, index, &stop)?
+                }
+                doorslam_team::runner::PiecesKind::Robot => {
+                    let pieces = doorslam_rendezvous::RobotPieces {
+                        calibration: config.calibration()?,
+                        matching: config.rendezvous.matching(),
+                    };
+                    doorslam_rendezvous::run(&config.team, &config.robot.id, index, &pieces, &stop)?
+                }
+            };
             tracing::info!(published_bytes = status.published_bytes, "team: done");
             Ok(())
         }

@@ -10,7 +10,7 @@
 //! `[crc32 of the preceding header bytes: u32 LE]`.
 //!
 //! Then records: `[len: u32 LE][crc32 of payload: u32 LE][payload]`. The payload starts
-//! with a kind byte (1 keyframe, 2 odometry) followed by little-endian fields; `len` is at
+//! with a kind byte (1 keyframe, 2 odometry, 3 inter-robot loop closure) followed by little-endian fields; `len` is at
 //! most [`MAX_RECORD_LEN`], so a damaged length never makes the reader allocate or skip
 //! gigabytes.
 //!
@@ -48,7 +48,7 @@ pub const MAGIC: [u8; 8] = *b"DSJOURNL";
 pub const FORMAT_VERSION: u32 = 1;
 /// Longest robot id a header holds (the config allows 32 bytes).
 pub const MAX_ROBOT_LEN: usize = 64;
-/// Largest record payload accepted; far above any record written (241 bytes), so a record
+/// Largest record payload accepted; far above any record written (249 bytes), so a record
 /// from a newer version still fits, while a damaged length is recognized as such.
 pub const MAX_RECORD_LEN: u32 = 64 * 1024;
 
@@ -140,18 +140,32 @@ pub enum Entry {
         relative: [f64; 7],
         information: [f64; 21],
     },
+    /// A verified loop closure between this robot's keyframe and another robot's, handed
+    /// over by the team link (multi-robot keys; `relative ≈ X_a⁻¹ X_b`, information
+    /// rotation-first). Kind 3: a journal holding one is not readable by builds before it
+    /// (they refuse the unknown kind and keep it in a side file).
+    Closure {
+        key_a: u64,
+        key_b: u64,
+        relative: [f64; 7],
+        information: [f64; 21],
+        inliers: u64,
+    },
 }
 
 const KEYFRAME: u8 = 1;
 const ODOMETRY: u8 = 2;
+const CLOSURE: u8 = 3;
 const KEYFRAME_LEN: usize = 1 + 16 + 56;
 const ODOMETRY_LEN: usize = 1 + 16 + 56 + 168;
+const CLOSURE_LEN: usize = 1 + 24 + 56 + 168;
 
 /// The payload length of a record kind this version writes.
 fn payload_len(kind: u8) -> Option<usize> {
     match kind {
         KEYFRAME => Some(KEYFRAME_LEN),
         ODOMETRY => Some(ODOMETRY_LEN),
+        CLOSURE => Some(CLOSURE_LEN),
         _ => None,
     }
 }
@@ -175,7 +189,7 @@ fn floats<const N: usize>(w: &[u64]) -> [f64; N] {
 
 impl Entry {
     fn encode(&self) -> Vec<u8> {
-        let mut b = Vec::with_capacity(ODOMETRY_LEN);
+        let mut b = Vec::with_capacity(CLOSURE_LEN);
         let f64s = |b: &mut Vec<u8>, v: &[f64]| {
             v.iter().for_each(|x| b.extend_from_slice(&x.to_le_bytes()))
         };
@@ -195,6 +209,20 @@ impl Entry {
                 b.push(ODOMETRY);
                 b.extend_from_slice(&from.to_le_bytes());
                 b.extend_from_slice(&to.to_le_bytes());
+                f64s(&mut b, relative);
+                f64s(&mut b, information);
+            }
+            Entry::Closure {
+                key_a,
+                key_b,
+                relative,
+                information,
+                inliers,
+            } => {
+                b.push(CLOSURE);
+                b.extend_from_slice(&key_a.to_le_bytes());
+                b.extend_from_slice(&key_b.to_le_bytes());
+                b.extend_from_slice(&inliers.to_le_bytes());
                 f64s(&mut b, relative);
                 f64s(&mut b, information);
             }
@@ -223,6 +251,13 @@ impl Entry {
                 to: w[1],
                 relative: floats(&w[2..9]),
                 information: floats(&w[9..30]),
+            }),
+            CLOSURE => Ok(Entry::Closure {
+                key_a: w[0],
+                key_b: w[1],
+                inliers: w[2],
+                relative: floats(&w[3..10]),
+                information: floats(&w[10..31]),
             }),
             kind => Err(BadRecord::UnknownKind { kind }),
         }

@@ -23,6 +23,8 @@ pub mod so3;
 
 pub use information::{check_information, InformationCheck, InformationError};
 pub use key::KeyError;
-pub use lie::{inverse_action_jacobian, LieGroup, Tangent, TangentMatrix, SE2, SE3};
+pub use lie::{
+    inverse_action_jacobian, reverse_measurement, LieGroup, Tangent, TangentMatrix, SE2, SE3,
+};
 pub use pose::{pose_from_array, pose_to_array, PoseError};
 pub use so3::{hat, vee, SO3, UNIT_QUATERNION_TOLERANCE};

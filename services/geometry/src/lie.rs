@@ -271,3 +271,13 @@ impl LieGroup for Isometry2<f64> {
         Vector3::new(self.translation.vector.x, self.translation.vector.y, 0.0)
     }
 }
+
+/// A relative-pose measurement `z ≈ X_a⁻¹ X_b` (information rotation-first, right
+/// perturbation) seen from its other end: `z⁻¹ ≈ X_b⁻¹ X_a`. Its residual is
+/// `Log(z X_b⁻¹ X_a) = −Ad(z) Log(z⁻¹ X_a⁻¹ X_b)`, so the covariance becomes
+/// `Ad(z) Σ Ad(z)ᵀ` and the information `Ad(z⁻¹)ᵀ Ω Ad(z⁻¹)` (symmetrized against rounding).
+pub fn reverse_measurement(z: &SE3, information: &TangentMatrix) -> (SE3, TangentMatrix) {
+    let ad = z.inverse().adjoint();
+    let reversed = ad.transpose() * information * ad;
+    (z.inverse(), (reversed + reversed.transpose()) * 0.5)
+}

@@ -125,6 +125,10 @@ impl Node {
                 session.meeting_started();
                 let index = session.stats().meetings - 1;
                 tracing::info!(peer = %peer, rendezvous = index, "peer appeared");
+                // A peer met before does not say Hello again (unless it restarted).
+                if let (Some(robot), Some(epoch)) = (session.peer_robot(), session.peer_epoch()) {
+                    self.pieces.backend.presence(&peer, robot, epoch, true);
+                }
                 self.ledger
                     .lock()
                     .rendezvous_started(peer.as_str(), index, now_ms);
@@ -135,6 +139,9 @@ impl Node {
                         s.meeting_ended();
                         tracing::info!(peer = %peer, "peer left");
                         self.ledger.lock().rendezvous_ended(peer.as_str(), now_ms);
+                        if let (Some(robot), Some(epoch)) = (s.peer_robot(), s.peer_epoch()) {
+                            self.pieces.backend.presence(&peer, robot, epoch, false);
+                        }
                     }
                 }
             }

@@ -85,8 +85,13 @@ pub trait BackendExchange {
     /// meetings cut off mid-way.
     fn messages_for(&mut self, peer: &RobotId) -> Vec<Body>;
     /// A message from `peer` of a kind the rendezvous itself does not handle (pose
-    /// estimates, and any back-end kind added to the wire format), each delivered once.
-    fn receive(&mut self, peer: &RobotId, body: Body) -> Result<(), BackendRefusal>;
+    /// estimates, and any back-end kind added to the wire format), each delivered once,
+    /// with the header it came with (the peer's epoch and this kind's sequence).
+    fn receive(&mut self, peer: &RobotId, header: &Header, body: Body)
+        -> Result<(), BackendRefusal>;
+    /// The peer said Hello (`present`: its robot number and team-link epoch are known
+    /// now; called again when it restarts with a new epoch), or left radio range.
+    fn presence(&mut self, _peer: &RobotId, _robot: u8, _epoch: u64, _present: bool) {}
 }
 
 /// The three pieces a session calls into, borrowed for one call.
@@ -357,6 +362,16 @@ impl PeerSession {
         self.connected
     }
 
+    /// The peer's robot number, once its Hello arrived (in its current epoch).
+    pub fn peer_robot(&self) -> Option<u8> {
+        self.peer_robot
+    }
+
+    /// The peer's team-link epoch, once it sent anything.
+    pub fn peer_epoch(&self) -> Option<u64> {
+        self.peer_epoch
+    }
+
     /// β: keys of every descriptor delivered from this peer.
     pub fn delivered_descriptors(&self) -> &BTreeSet<u64> {
         &self.delivered
@@ -555,7 +570,7 @@ impl PeerSession {
         if sequence >= r.next.saturating_add(self.config.receive_window) {
             return Err(Refusal::OutOfWindow { kind, sequence });
         }
-        let result = self.process(msg.body, svc);
+        let result = self.process(&msg.header, msg.body, svc);
         if !matches!(result, Err(Refusal::BeforeHello(_))) {
             // Processed (or refused for good): acknowledge so it is not resent forever.
             self.received.entry(kind).or_default().insert(sequence);
@@ -593,7 +608,12 @@ impl PeerSession {
         Ok(())
     }
 
-    fn process(&mut self, body: Body, svc: &mut Services<'_>) -> Result<(), Refusal> {
+    fn process(
+        &mut self,
+        header: &Header,
+        body: Body,
+        svc: &mut Services<'_>,
+    ) -> Result<(), Refusal> {
         let kind = body.kind();
         if let Body::Hello(h) = &body {
             if h.robot == self.me.robot {
@@ -607,6 +627,8 @@ impl PeerSession {
                 ));
             }
             self.peer_robot = Some(h.robot);
+            svc.backend
+                .presence(&self.peer, h.robot, header.epoch, self.connected);
             return Ok(());
         }
         let Some(peer_robot) = self.peer_robot else {
@@ -695,7 +717,7 @@ impl PeerSession {
             Ok(())
         } else {
             self.stats.backend_received += 1;
-            svc.backend.receive(&self.peer, body)?;
+            svc.backend.receive(&self.peer, header, body)?;
             Ok(())
         }
     }

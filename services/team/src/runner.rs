@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::ledger::{Ledger, LedgerError, LedgerHandle};
 use crate::link::{team_name, LinkConfig, TeamError};
-use crate::node::{Node, Pieces};
+use crate::node::{LinkEvent, Node, Pieces};
 use crate::protocol::{Identity, PeerStats, ProtocolConfig};
 use crate::standin::{BackendLog, EchoBackend, SimPlaces, SimWorld, TruthVerifier};
 use crate::zenoh_link::{ZenohLink, ZenohLinkConfig};
@@ -49,8 +49,22 @@ pub struct TeamSection {
     pub raw_image_width: u64,
     #[serde(default = "default_height")]
     pub raw_image_height: u64,
+    /// What the protocol calls into: `robot` (place matching, PnP verification and the
+    /// back-end over the robot's iceoryx2 topics: `doorslam-rendezvous`) or `standin`
+    /// (simulated keyframes and descriptors of `[team.standin]`, for tests of the link).
+    #[serde(default)]
+    pub pieces: PiecesKind,
     #[serde(default)]
     pub standin: StandinSection,
+}
+
+/// `[team] pieces`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PiecesKind {
+    #[default]
+    Robot,
+    Standin,
 }
 
 /// `[team.standin]`: the simulated keyframes and descriptors (the same seed on every robot
@@ -145,6 +159,7 @@ impl Default for TeamSection {
             write_every_ms: default_write_every_ms(),
             raw_image_width: default_width(),
             raw_image_height: default_height(),
+            pieces: PiecesKind::default(),
             standin: StandinSection::default(),
         }
     }
@@ -166,6 +181,9 @@ pub enum RunError {
     },
     #[error("{path}: {reason}")]
     Epoch { path: PathBuf, reason: String },
+    /// A failure of the robot's side (its shared memory, its data).
+    #[error("{0}")]
+    Side(String),
 }
 
 impl TeamSection {
@@ -211,6 +229,9 @@ pub struct Status {
     pub peers: BTreeMap<String, PeerStatus>,
     pub present: Vec<String>,
     pub backend: BackendStatus,
+    /// The robot side's own counters (place matching, verification, the relay).
+    #[serde(default)]
+    pub pieces: serde_json::Value,
     pub finished: bool,
 }
 
@@ -241,18 +262,10 @@ impl From<BackendLog> for BackendStatus {
 
 /// Reads `<dir>/team.epoch`, adds one and writes it back (atomically).
 pub fn next_epoch(dir: &Path) -> Result<u64, RunError> {
-    let path = dir.join("team.epoch");
-    let previous = match std::fs::read_to_string(&path) {
-        Ok(text) => text.trim().parse::<u64>().map_err(|e| RunError::Epoch {
-            path: path.clone(),
-            reason: format!("not an epoch number: {e}"),
-        })?,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => 0,
-        Err(source) => return Err(RunError::Io { path, source }),
-    };
-    let epoch = previous + 1;
-    write_atomic(&path, &format!("{epoch}\n"))?;
-    Ok(epoch)
+    doorslam_ipc::lifecycle::next_epoch(dir, "team.epoch").map_err(|e| RunError::Epoch {
+        path: e.path,
+        reason: e.reason,
+    })
 }
 
 fn write_atomic(path: &Path, text: &str) -> Result<(), RunError> {
@@ -265,84 +278,128 @@ fn write_atomic(path: &Path, text: &str) -> Result<(), RunError> {
     std::fs::rename(&tmp, path).map_err(io)
 }
 
-/// Runs one robot's team link until `stop` is set (SIGTERM/SIGINT in the CLI).
+/// What a robot plugs into its team link: the pieces the protocol calls into, and the
+/// hooks of every turn that move data in and out of them (the robot's iceoryx2 topics in
+/// `doorslam-rendezvous`; a clock for the stand-ins, [`StandinSide`]).
+pub trait RobotSide {
+    /// Pieces for a node; called at start and whenever the link starts a new epoch (the
+    /// pieces share their state, so new ones continue where the old ones were).
+    fn pieces(&mut self) -> Pieces;
+    /// The link started epoch `epoch` (at start, and after [`Self::before_turn`] asked).
+    fn epoch_started(&mut self, epoch: u64) -> Result<(), RunError>;
+    /// Before each turn (local time `now_ms`): take new data in. `Ok(true)`: start a new
+    /// epoch (what peers were told of this robot's back-end is gone; they resend).
+    fn before_turn(&mut self, now_ms: u64, node: &mut Node) -> Result<bool, RunError>;
+    /// After each turn: hand out what the pieces produced.
+    fn after_turn(&mut self, node: &mut Node) -> Result<(), RunError>;
+    /// Keyframes this robot has made so far (for `status.json`).
+    fn keyframes(&self) -> u64;
+    /// The back-end side's counters (for `status.json`).
+    fn backend_status(&self) -> BackendStatus;
+    /// Anything else the side reports in `status.json` (`pieces`).
+    fn extra_status(&self) -> serde_json::Value {
+        serde_json::Value::Null
+    }
+}
+
+/// The stand-ins of [`crate::standin`] on a clock: simulated keyframes appear one per
+/// `keyframe_interval_ms`, verified by a truth table, answered by the echo back-end.
+pub struct StandinSide {
+    world: SimWorld,
+    robot: u8,
+    features: usize,
+    keyframes: u64,
+    interval_ms: u64,
+    created: Option<std::sync::Arc<std::sync::atomic::AtomicU64>>,
+    log: std::sync::Arc<std::sync::Mutex<BackendLog>>,
+}
+
+impl StandinSide {
+    pub fn new(s: &StandinSection, robot: u8) -> Self {
+        Self {
+            world: SimWorld {
+                seed: s.seed,
+                places: s.places,
+                alias_every: s.alias_every,
+                ..SimWorld::default()
+            },
+            robot,
+            features: s.features_per_keyframe,
+            keyframes: s.keyframes,
+            interval_ms: s.keyframe_interval_ms.max(1),
+            created: None,
+            log: Default::default(),
+        }
+    }
+}
+
+impl RobotSide for StandinSide {
+    fn pieces(&mut self) -> Pieces {
+        let place = SimPlaces::new(self.world, self.robot, self.features);
+        if let Some(old) = &self.created {
+            place.created().store(old.load(Ordering::Acquire), Ordering::Release);
+        }
+        self.created = Some(place.created());
+        let mut backend = EchoBackend::new(self.robot);
+        backend.log = self.log.clone();
+        Pieces {
+            place: Box::new(place),
+            verifier: Box::new(TruthVerifier::from_world(self.world)),
+            backend: Box::new(backend),
+        }
+    }
+    fn epoch_started(&mut self, _epoch: u64) -> Result<(), RunError> {
+        Ok(())
+    }
+    fn before_turn(&mut self, now_ms: u64, _node: &mut Node) -> Result<bool, RunError> {
+        let made = (now_ms / self.interval_ms + 1).min(self.keyframes);
+        if let Some(c) = &self.created {
+            c.store(made, Ordering::Release);
+        }
+        Ok(false)
+    }
+    fn after_turn(&mut self, _node: &mut Node) -> Result<(), RunError> {
+        Ok(())
+    }
+    fn keyframes(&self) -> u64 {
+        self.created
+            .as_ref()
+            .map_or(0, |c| c.load(Ordering::Acquire))
+    }
+    fn backend_status(&self) -> BackendStatus {
+        self.log
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+            .into()
+    }
+}
+
+/// Runs one robot's team link with the stand-ins until `stop` is set (SIGTERM/SIGINT in
+/// the CLI).
 pub fn run(
     section: &TeamSection,
     robot: &str,
     robot_index: u8,
     stop: &AtomicBool,
 ) -> Result<Status, RunError> {
-    section.validate()?;
-    let id = RobotId::new(robot).map_err(|e| RunError::Config {
-        key: "robot id",
-        reason: e.to_string(),
-    })?;
-    let dir = section.run_dir.join(robot);
-    std::fs::create_dir_all(&dir).map_err(|source| RunError::Io {
-        path: dir.clone(),
-        source,
-    })?;
-    let epoch = next_epoch(&dir)?;
-    let s = &section.standin;
-    let world = SimWorld {
-        seed: s.seed,
-        places: s.places,
-        alias_every: s.alias_every,
-        ..SimWorld::default()
-    };
-    let place = SimPlaces::new(world, robot_index, s.features_per_keyframe);
-    let created = place.created();
-    let backend = EchoBackend::new(robot_index);
-    let backend_log = backend.log.clone();
-    let ledger = LedgerHandle::new(Ledger::new(
-        robot,
-        &section.name,
-        epoch,
-        section.raw_image_width * section.raw_image_height,
-    ));
-    let me = Identity {
-        id: id.clone(),
-        robot: robot_index,
-        epoch,
-    };
-    let config = ProtocolConfig {
-        retransmit_ms: section.retransmit_ms,
-        ..ProtocolConfig::default()
-    };
-    let mut node = Node::new(
-        me,
-        config,
-        ledger.clone(),
-        Pieces {
-            place: Box::new(place),
-            verifier: Box::new(TruthVerifier::from_world(world)),
-            backend: Box::new(backend),
-        },
-    );
-    let mut link = ZenohLink::open(&ZenohLinkConfig {
-        team: section.name.clone(),
-        me: id,
-        link: LinkConfig {
-            listen: section.listen.clone(),
-            connect: section.connect.clone(),
-            multicast_scouting: section.multicast_scouting,
-        },
-        lease_ms: Some(section.lease_ms),
-    })?;
-    doorslam_ipc::lifecycle::sd_notify(&format!(
-        "READY=1\nSTATUS=team {} epoch {epoch}",
-        section.name
-    ));
-    let watchdog = doorslam_ipc::lifecycle::watchdog_interval();
-    tracing::info!(robot, epoch, team = %section.name, "team: link open");
+    let mut side = StandinSide::new(&section.standin, robot_index);
+    run_robot(section, robot, robot_index, &mut side, stop)
+}
 
-    let start = Instant::now();
-    let mut last_write = 0u64;
-    let mut last_ping = Instant::now();
-    let status = |node: &Node, link: &ZenohLink, finished: bool| Status {
+/// `status.json` of a node.
+fn status_of(
+    robot: &str,
+    epoch: u64,
+    node: &Node,
+    link: &ZenohLink,
+    side: &dyn RobotSide,
+    finished: bool,
+) -> Status {
+    Status {
         robot: robot.into(),
         epoch,
-        keyframes_created: created.load(Ordering::Acquire),
+        keyframes_created: side.keyframes(),
         published_bytes: link.published_bytes(),
         published_messages: link.published_messages(),
         peers: node
@@ -371,30 +428,108 @@ pub fn run(
             .filter(|s| s.is_connected())
             .map(|s| s.peer().to_string())
             .collect(),
-        backend: backend_log
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .clone()
-            .into(),
+        backend: side.backend_status(),
+        pieces: side.extra_status(),
         finished,
+    }
+}
+
+/// Runs one robot's team link with `side`'s pieces until `stop` is set. Writes
+/// `<run_dir>/<robot>/ledger.json` and `status.json` every `write_every_ms` and at the end.
+pub fn run_robot(
+    section: &TeamSection,
+    robot: &str,
+    robot_index: u8,
+    side: &mut dyn RobotSide,
+    stop: &AtomicBool,
+) -> Result<Status, RunError> {
+    section.validate()?;
+    let id = RobotId::new(robot).map_err(|e| RunError::Config {
+        key: "robot id",
+        reason: e.to_string(),
+    })?;
+    let dir = section.run_dir.join(robot);
+    std::fs::create_dir_all(&dir).map_err(|source| RunError::Io {
+        path: dir.clone(),
+        source,
+    })?;
+    let mut epoch = next_epoch(&dir)?;
+    let ledger = LedgerHandle::new(Ledger::new(
+        robot,
+        &section.name,
+        epoch,
+        section.raw_image_width * section.raw_image_height,
+    ));
+    let config = ProtocolConfig {
+        retransmit_ms: section.retransmit_ms,
+        ..ProtocolConfig::default()
     };
-    let write = |node: &Node, link: &ZenohLink, finished: bool| -> Result<(), RunError> {
+    let new_node = |epoch: u64, side: &mut dyn RobotSide| {
+        let me = Identity {
+            id: id.clone(),
+            robot: robot_index,
+            epoch,
+        };
+        Node::new(me, config, ledger.clone(), side.pieces())
+    };
+    let mut node = new_node(epoch, side);
+    let mut link = ZenohLink::open(&ZenohLinkConfig {
+        team: section.name.clone(),
+        me: id.clone(),
+        link: LinkConfig {
+            listen: section.listen.clone(),
+            connect: section.connect.clone(),
+            multicast_scouting: section.multicast_scouting,
+        },
+        lease_ms: Some(section.lease_ms),
+    })?;
+    side.epoch_started(epoch)?;
+    doorslam_ipc::lifecycle::sd_notify(&format!(
+        "READY=1\nSTATUS=team {} epoch {epoch}",
+        section.name
+    ));
+    let watchdog = doorslam_ipc::lifecycle::watchdog_interval();
+    tracing::info!(robot, epoch, team = %section.name, "team: link open");
+
+    let start = Instant::now();
+    let mut last_write = 0u64;
+    let mut last_ping = Instant::now();
+    let write = |node: &Node,
+                 link: &ZenohLink,
+                 side: &dyn RobotSide,
+                 epoch: u64,
+                 finished: bool|
+     -> Result<(), RunError> {
         ledger.write_json(&dir.join("ledger.json"))?;
-        let text = serde_json::to_string_pretty(&status(node, link, finished)).map_err(|e| {
-            RunError::Io {
-                path: dir.join("status.json"),
-                source: std::io::Error::other(e),
-            }
+        let status = status_of(robot, epoch, node, link, side, finished);
+        let text = serde_json::to_string_pretty(&status).map_err(|e| RunError::Io {
+            path: dir.join("status.json"),
+            source: std::io::Error::other(e),
         })?;
         write_atomic(&dir.join("status.json"), &text)
     };
     while !stop.load(Ordering::Acquire) {
         let now_ms = start.elapsed().as_millis() as u64;
-        let made = (now_ms / s.keyframe_interval_ms.max(1) + 1).min(s.keyframes);
-        created.store(made, Ordering::Release);
+        if side.before_turn(now_ms, &mut node)? {
+            // The back-end behind this link restarted: a new epoch makes every peer forget
+            // what it sent us and send it again; peers present now stay present.
+            epoch = next_epoch(&dir)?;
+            let present: Vec<RobotId> = node
+                .sessions()
+                .filter(|s| s.is_connected())
+                .map(|s| s.peer().clone())
+                .collect();
+            node = new_node(epoch, side);
+            for p in present {
+                node.handle(LinkEvent::PeerAppeared(p), now_ms);
+            }
+            side.epoch_started(epoch)?;
+            tracing::info!(robot, epoch, "team: new epoch (the back-end restarted)");
+        }
         node.step(&mut link, now_ms, Duration::from_millis(20));
+        side.after_turn(&mut node)?;
         if now_ms >= last_write + section.write_every_ms {
-            write(&node, &link, false)?;
+            write(&node, &link, side, epoch, false)?;
             last_write = now_ms;
         }
         if let Some(period) = watchdog {
@@ -405,8 +540,9 @@ pub fn run(
         }
     }
     doorslam_ipc::lifecycle::sd_notify("STOPPING=1");
-    write(&node, &link, true)?;
-    let final_status = status(&node, &link, true);
+    side.after_turn(&mut node)?;
+    write(&node, &link, side, epoch, true)?;
+    let final_status = status_of(robot, epoch, &node, &link, side, true);
     link.close()?;
     tracing::info!(robot, "team: stopped");
     Ok(final_status)

@@ -13,7 +13,8 @@ use std::sync::{Arc, Mutex};
 
 use doorslam_geometry::{key, SE3};
 use doorslam_ipc::wire::{
-    f16_from_f32, Body, CompactPose, Descriptor, Estimate, Information, LoopClosure, Match, Pose,
+    f16_from_f32, Body, CompactPose, Descriptor, Estimate, Header, Information, LoopClosure, Match,
+    Pose,
     PoseEstimate, PoseEstimates, RobotId, Stage, VerificationFeature, VerificationFeatures,
     DESCRIPTOR_DIM,
 };
@@ -291,7 +292,12 @@ impl BackendExchange for NoBackend {
         Vec::new()
     }
 
-    fn receive(&mut self, _peer: &RobotId, body: Body) -> Result<(), BackendRefusal> {
+    fn receive(
+        &mut self,
+        _peer: &RobotId,
+        _header: &Header,
+        body: Body,
+    ) -> Result<(), BackendRefusal> {
         Err(BackendRefusal(format!(
             "no back-end runs here ({} dropped)",
             body.kind().name()
@@ -365,7 +371,12 @@ impl BackendExchange for EchoBackend {
         rounds
     }
 
-    fn receive(&mut self, peer: &RobotId, body: Body) -> Result<(), BackendRefusal> {
+    fn receive(
+        &mut self,
+        peer: &RobotId,
+        _header: &Header,
+        body: Body,
+    ) -> Result<(), BackendRefusal> {
         let Body::PoseEstimates(p) = body else {
             return Err(BackendRefusal(format!(
                 "echo back-end takes pose estimates, not {}",

@@ -525,10 +525,8 @@ impl Agent {
         let (own, other, z, information) = if ra == Some(self.robot) {
             (a, b, z, information)
         } else if rb == Some(self.robot) {
-            // r' = Log(z X_b⁻¹ X_a) = −Ad_z r: Ω' = Ad(z⁻¹)ᵀ Ω Ad(z⁻¹) (see local::prior_through).
-            let ad = z.inverse().adjoint();
-            let reversed = ad.transpose() * information * ad;
-            (b, a, z.inverse(), (reversed + reversed.transpose()) * 0.5)
+            let (z, information) = doorslam_geometry::reverse_measurement(&z, &information);
+            (b, a, z, information)
         } else {
             return Err(DpgoError::NotOwn {
                 key: key::label(a),
@@ -567,6 +565,19 @@ impl Agent {
     pub fn set_present(&mut self, neighbor: u8, present: bool) {
         if let Some(n) = self.neighbors.get_mut(&neighbor) {
             n.present = present;
+        }
+    }
+
+    /// The link to `neighbor` restarted (a team link's new epoch, a back-end restarted
+    /// behind it): what the neighbour was known to hold, or was sent and not yet taken by
+    /// it, may be lost, so everything is due again at the next [`Self::messages_for`].
+    pub fn link_restarted(&mut self, neighbor: u8) {
+        if let Some(n) = self.neighbors.get_mut(&neighbor) {
+            n.confirmed = Sent::default();
+            n.confirmed_epoch = None;
+            n.in_flight.clear();
+            n.graphs_held.clear();
+            n.graphs_in_flight.clear();
         }
     }
 

@@ -200,6 +200,72 @@ fn odometry_fields(
     })
 }
 
+/// Checks a loop closure for the back-end of robot `robot_index`: the rules of
+/// [`check_closure`], and one of its keyframes must be this robot's while the other is
+/// another robot's (the team link hands over inter-robot closures only).
+pub fn check_own_closure(lc: &LoopClosure, robot_index: u32) -> Result<ClosureInput, InputError> {
+    let c = check_closure(lc)?;
+    inter_robot_of(c, robot_index)
+}
+
+fn inter_robot_of(c: ClosureInput, robot_index: u32) -> Result<ClosureInput, InputError> {
+    let check = Check {
+        topic: Topic::Closures,
+        robot: robot_index,
+    };
+    let (ra, rb) = (key::robot(c.key_a), key::robot(c.key_b));
+    let me = u8::try_from(robot_index).ok();
+    if ra == rb {
+        return Err(check.fail(
+            "robot_b",
+            format!(
+                "{} and {} are keyframes of one robot: not an inter-robot closure",
+                key::label(c.key_a),
+                key::label(c.key_b)
+            ),
+        ));
+    }
+    if ra != me && rb != me {
+        return Err(check.fail(
+            "robot_a",
+            format!(
+                "neither {} nor {} is a keyframe of robot {robot_index}",
+                key::label(c.key_a),
+                key::label(c.key_b)
+            ),
+        ));
+    }
+    Ok(c)
+}
+
+/// The same rules for a closure read back from the journal.
+pub(crate) fn check_journaled_closure(
+    robot_index: u32,
+    key_a: u64,
+    key_b: u64,
+    relative: &[f64; 7],
+    information: &[f64; 21],
+    inliers: u64,
+) -> Result<ClosureInput, InputError> {
+    let c = Check {
+        topic: Topic::Closures,
+        robot: robot_index,
+    };
+    let has_robot = |field, k: u64| {
+        key::robot(k)
+            .map(|_| k)
+            .ok_or_else(|| c.fail(field, format!("{k:#x} is not a multi-robot key")))
+    };
+    let input = ClosureInput {
+        key_a: has_robot("key_a", key_a)?,
+        key_b: has_robot("key_b", key_b)?,
+        relative: c.pose("relative", relative)?,
+        information: c.information("information", information)?,
+        inliers: u32::try_from(inliers).unwrap_or(u32::MAX),
+    };
+    inter_robot_of(input, robot_index)
+}
+
 /// Checks a loop closure between keyframes of two robots of the team (or one).
 pub fn check_closure(lc: &LoopClosure) -> Result<ClosureInput, InputError> {
     let c = Check {

@@ -15,19 +15,25 @@
 //! the way is logged as an error with the side file now holding the unread bytes.
 
 pub mod input;
+pub mod output;
 pub mod state;
+pub mod team;
 
 use std::path::{Path, PathBuf};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use doorslam_geometry::pose_to_array;
+use doorslam_ipc::wire::RobotId;
 use doorslam_ipc::{
-    create_node, Keyframe, Lifecycle, OdometryEdge, PoseEstimate, Receiver, Sender, Topic,
+    create_node, EnvelopeEvent, Keyframe, Lifecycle, LoopClosure, OdometryEdge, PoseEstimate,
+    Receiver, Sender, Topic, WireEnvelope,
 };
 use serde::Deserialize;
 
+use crate::distributed::{condensed::PcmSettings, AgentOptions};
 use crate::journal::{Journal, JournalError, Recovery};
 pub use state::{Append, BackendReport, BackendState, Outcome};
+pub use team::{BridgeError, BridgeStats, TeamBridge};
 
 /// Failures of the back-end service.
 #[derive(Debug, thiserror::Error)]
@@ -40,10 +46,17 @@ pub enum ServiceError {
     Robot(u32),
     #[error("backend config: {0}")]
     Config(String),
+    #[error(transparent)]
+    Epoch(#[from] doorslam_ipc::lifecycle::EpochError),
+    #[error("{path}: {source}")]
+    Output {
+        path: PathBuf,
+        source: std::io::Error,
+    },
 }
 
 /// `[backend]` of `robot.toml`. Unknown keys are errors: a typo must not be ignored.
-#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct BackendSection {
     /// Where the back-end keeps its journal (`<state_dir>/<robot id>/backend.journal`).
@@ -52,6 +65,21 @@ pub struct BackendSection {
     /// Re-optimize after this many new keyframes.
     #[serde(default = "default_optimize_every")]
     pub optimize_every: usize,
+    /// Run the distributed back-end with the team link (closures from `closures`, relay on
+    /// `team-in` / `team-out`); off: this robot's odometry graph only.
+    #[serde(default = "default_true")]
+    pub distributed: bool,
+    /// PCM inside the distributed back-end: χ² probability of the pairwise consistency
+    /// test (README, `doorslam pcm`), and the smallest clique of closures kept per robot
+    /// pair (2: a closure alone between two robots is not trusted).
+    #[serde(default = "default_pcm_threshold")]
+    pub pcm_threshold: f64,
+    #[serde(default = "default_min_clique")]
+    pub pcm_min_clique: usize,
+    /// Write `odometry.tum`, `team_estimate.tum` and `backend.json` into the state folder
+    /// this often (seconds; 0 = only when stopping).
+    #[serde(default = "default_write_every_s")]
+    pub write_every_s: f64,
 }
 
 fn default_state_dir() -> PathBuf {
@@ -60,12 +88,28 @@ fn default_state_dir() -> PathBuf {
 fn default_optimize_every() -> usize {
     10
 }
+fn default_true() -> bool {
+    true
+}
+fn default_pcm_threshold() -> f64 {
+    0.99
+}
+fn default_min_clique() -> usize {
+    2
+}
+fn default_write_every_s() -> f64 {
+    1.0
+}
 
 impl Default for BackendSection {
     fn default() -> Self {
         Self {
             state_dir: default_state_dir(),
             optimize_every: default_optimize_every(),
+            distributed: true,
+            pcm_threshold: default_pcm_threshold(),
+            pcm_min_clique: default_min_clique(),
+            write_every_s: default_write_every_s(),
         }
     }
 }
@@ -77,6 +121,23 @@ impl BackendSection {
                 "backend.optimize_every must be >= 1".into(),
             ));
         }
+        if !(self.pcm_threshold > 0.0 && self.pcm_threshold < 1.0) {
+            return Err(ServiceError::Config(format!(
+                "backend.pcm_threshold = {}: a probability strictly between 0 and 1",
+                self.pcm_threshold
+            )));
+        }
+        if self.pcm_min_clique == 0 {
+            return Err(ServiceError::Config(
+                "backend.pcm_min_clique must be >= 1".into(),
+            ));
+        }
+        if !(self.write_every_s.is_finite() && (0.0..=3600.0).contains(&self.write_every_s)) {
+            return Err(ServiceError::Config(format!(
+                "backend.write_every_s = {}: seconds from 0 to 3600",
+                self.write_every_s
+            )));
+        }
         Ok(())
     }
 
@@ -87,6 +148,14 @@ impl BackendSection {
             robot_index,
             state_dir: self.state_dir.join(robot),
             optimize_every: self.optimize_every,
+            distributed: self.distributed.then(|| AgentOptions {
+                pcm: Some(PcmSettings {
+                    threshold: self.pcm_threshold,
+                    min_clique: self.pcm_min_clique,
+                }),
+                ..AgentOptions::default()
+            }),
+            write_every: Duration::from_secs_f64(self.write_every_s),
         }
     }
 }
@@ -102,6 +171,10 @@ pub struct BackendConfig {
     pub state_dir: PathBuf,
     /// Re-optimize after this many new keyframes.
     pub optimize_every: usize,
+    /// The distributed back-end's options, when it runs.
+    pub distributed: Option<AgentOptions>,
+    /// How often the output files are written (zero: only when stopping).
+    pub write_every: Duration,
 }
 
 /// Logs what happened to one sample (rejections name robot, topic and field).
@@ -199,11 +272,97 @@ fn drain(
     Ok(any)
 }
 
+/// The relay with the team link: closures and envelopes in, envelopes out.
+struct TeamPorts {
+    closures: Receiver<LoopClosure>,
+    team_in: Receiver<WireEnvelope>,
+    team_out: Sender<WireEnvelope>,
+}
+
+impl TeamPorts {
+    fn send(
+        &self,
+        event: EnvelopeEvent,
+        peer: u32,
+        epoch: u64,
+        bytes: &[u8],
+    ) -> Result<(), ServiceError> {
+        self.team_out
+            .send_with(|slot| WireEnvelope::write(slot, event, peer, epoch, bytes))?;
+        Ok(())
+    }
+
+    /// Takes every queued closure and envelope; whether there was any.
+    fn drain(
+        &self,
+        robot: u32,
+        state: &mut BackendState,
+        journal: &mut Journal,
+    ) -> Result<bool, ServiceError> {
+        let mut any = false;
+        while let Some(sample) = self.closures.try_recv()? {
+            any = true;
+            let c = sample.payload();
+            let outcome = state.on_closure(c, journal)?;
+            log_outcome(Topic::Closures, c.keyframe_a, &outcome);
+        }
+        while let Some(sample) = self.team_in.try_recv()? {
+            any = true;
+            let e = sample.payload();
+            let Some(bridge) = state.team_mut() else {
+                continue;
+            };
+            match bridge.on_envelope(e.event, e.peer_robot, e.epoch, e.bytes()) {
+                Ok(true) => {
+                    let epoch = bridge.epoch();
+                    self.send(EnvelopeEvent::BackendStarted, robot, epoch, &[])?;
+                }
+                Ok(false) => {}
+                Err(err) => tracing::warn!("backend: team-in: {err}"),
+            }
+        }
+        Ok(any)
+    }
+
+    /// Steps the distributed back-end and hands its messages to the team link.
+    fn exchange(&self, state: &mut BackendState) -> Result<(), ServiceError> {
+        let Some(bridge) = state.team_mut() else {
+            return Ok(());
+        };
+        match bridge.step() {
+            Ok(true) => tracing::debug!(
+                anchored = bridge.agent().anchored(),
+                rejected = bridge.agent().rejected_closures().len(),
+                "backend: distributed back-end solved"
+            ),
+            Ok(false) => {}
+            Err(e) => tracing::warn!("backend: distributed back-end step failed: {e}"),
+        }
+        match bridge.outgoing() {
+            Ok(messages) => {
+                for (peer, bytes) in messages {
+                    self.send(EnvelopeEvent::Message, u32::from(peer), 0, &bytes)?;
+                }
+            }
+            Err(e) => tracing::warn!("backend: distributed back-end messages failed: {e}"),
+        }
+        Ok(())
+    }
+}
+
 /// Runs until SIGTERM/SIGINT. The journal is replayed first, so a restarted back-end
-/// resumes with the graph it had.
+/// resumes with the graph it had (closures included), and the distributed back-end
+/// rejoins the team with a new epoch.
 pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
     let mut state = BackendState::new(config.robot_index, config.optimize_every)
         .ok_or(ServiceError::Robot(config.robot_index))?;
+    let robot = u8::try_from(config.robot_index).map_err(|_| ServiceError::Robot(config.robot_index))?;
+    if let Some(options) = &config.distributed {
+        let id = RobotId::new(&config.robot)
+            .map_err(|e| ServiceError::Config(format!("robot id {:?}: {e}", config.robot)))?;
+        let epoch = doorslam_ipc::lifecycle::next_epoch(&config.state_dir, "backend.epoch")?;
+        state = state.with_team(TeamBridge::new(robot, id, epoch, options.clone()));
+    }
     let path = config.state_dir.join("backend.journal");
     let (mut journal, recovery) = Journal::open(&path, &config.robot)?;
     state.recover(&recovery);
@@ -217,21 +376,52 @@ pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
     let keyframes = Receiver::<Keyframe>::new(&node, &config.robot, Topic::Keyframes)?;
     let odometry = Receiver::<OdometryEdge>::new(&node, &config.robot, Topic::Odometry)?;
     let estimates = Sender::<PoseEstimate>::new(&node, &config.robot, Topic::Estimates)?;
+    let team = match state.team() {
+        Some(bridge) => {
+            let ports = TeamPorts {
+                closures: Receiver::new(&node, &config.robot, Topic::Closures)?,
+                team_in: Receiver::new(&node, &config.robot, Topic::TeamIn)?,
+                team_out: Sender::new(&node, &config.robot, Topic::TeamOut)?,
+            };
+            // A team link already running learns this back-end's epoch (and that whatever
+            // its peers think we hold is gone if we restarted).
+            ports.send(EnvelopeEvent::BackendStarted, config.robot_index, bridge.epoch(), &[])?;
+            Some(ports)
+        }
+        None => None,
+    };
+    let outputs = output::Outputs::new(&config.state_dir);
     let mut lifecycle = Lifecycle::new();
     lifecycle.ready(&format!(
         "{} keyframes recovered",
         recovered.recovered_keyframes
     ));
-    tracing::info!(robot = %config.robot, "backend: ready (subscribed to keyframes and odometry)");
+    tracing::info!(
+        robot = %config.robot,
+        distributed = team.is_some(),
+        "backend: ready (subscribed to keyframes and odometry{})",
+        if team.is_some() { ", closures and the team link" } else { "" }
+    );
 
+    let mut last_write = Instant::now();
+    // Short sleeps: the team link's messages are taken within this time too.
+    let wait = if team.is_some() {
+        Duration::from_millis(20)
+    } else {
+        Duration::from_millis(100)
+    };
     while lifecycle.keep_going(&node) {
-        // Sleep until a keyframe arrives (or 100 ms pass), then take everything queued.
-        let woken = keyframes.recv_timeout(Duration::from_millis(100))?;
+        // Sleep until a keyframe arrives (or the wait ends), then take everything queued.
+        let woken = keyframes.recv_timeout(wait)?;
         let mut progressed = woken.is_some();
         if let Some(sample) = woken {
             feed_keyframe(&mut state, &mut journal, sample.payload())?;
         }
         progressed |= drain(&keyframes, &odometry, &mut state, &mut journal)?;
+        if let Some(ports) = &team {
+            progressed |= ports.drain(config.robot_index, &mut state, &mut journal)?;
+            ports.exchange(&mut state)?;
+        }
         if progressed && state.optimization_due() {
             match state.optimize() {
                 Ok(s) => tracing::info!(
@@ -252,12 +442,22 @@ pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
                 estimates.send_copy(&est)?;
             }
         }
+        if !config.write_every.is_zero() && last_write.elapsed() >= config.write_every {
+            last_write = Instant::now();
+            if let Err(e) = outputs.write(&state) {
+                tracing::warn!("backend: {e}");
+            }
+        }
     }
     lifecycle.stopping();
     // Whatever reached the queues before the stop is journaled: producers stop first
     // (`doorslam up` and the systemd units stop in reverse start order), so this is all
     // they sent.
     drain(&keyframes, &odometry, &mut state, &mut journal)?;
+    if let Some(ports) = &team {
+        ports.drain(config.robot_index, &mut state, &mut journal)?;
+    }
+    outputs.write(&state)?;
     tracing::info!(report = ?state.report(), pending_edges = state.pending(), "backend: stopped");
     Ok(state.report().clone())
 }

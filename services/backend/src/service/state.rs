@@ -3,16 +3,17 @@
 //! when to optimize. The iceoryx2 loop ([`super::run`]) only moves samples in and out, so
 //! all of this is tested without shared memory.
 
-use std::collections::{HashSet, VecDeque};
+use std::collections::{BTreeMap, HashSet, VecDeque};
 
 use doorslam_geometry::information::upper_from_matrix;
 use doorslam_geometry::{key, pose_to_array, SE3};
-use doorslam_ipc::{Keyframe, OdometryEdge};
+use doorslam_ipc::{Keyframe, LoopClosure, OdometryEdge};
 
 use super::input::{
-    check_journaled_keyframe, check_journaled_odometry, check_keyframe, check_odometry, InputError,
-    KeyframeInput, OdometryInput,
+    check_journaled_closure, check_journaled_keyframe, check_journaled_odometry, check_keyframe,
+    check_odometry, check_own_closure, ClosureInput, InputError, KeyframeInput, OdometryInput,
 };
+use super::team::TeamBridge;
 use crate::graph::PoseGraph;
 use crate::journal::{Entry, JournalError, Recovery};
 use crate::solver::{Optimizer, SolveError, SolverOptions, Summary};
@@ -75,6 +76,13 @@ pub struct BackendReport {
     pub rejected: usize,
     /// Edges dropped after waiting for keyframes that never came.
     pub expired_edges: usize,
+    /// Inter-robot loop closures from the team link in the graph (recovered included).
+    pub accepted_closures: usize,
+    pub recovered_closures: usize,
+    /// Closures dropped after waiting for a keyframe of this robot that never came.
+    pub expired_closures: usize,
+    /// Keyframes, edges or closures the distributed back-end refused (logged).
+    pub team_refused: usize,
     pub optimizations: usize,
     pub failed_optimizations: usize,
 }
@@ -89,8 +97,16 @@ pub struct BackendState {
     /// Odometry edges in the graph, by (from, to) keyframe id.
     odometry: HashSet<(u64, u64)>,
     pending: VecDeque<OdometryInput>,
+    /// Inter-robot closures in the graph, by (key, key) both ways.
+    closures: HashSet<(u64, u64)>,
+    /// Closures whose keyframe of this robot has not arrived yet.
+    pending_closures: VecDeque<ClosureInput>,
+    /// Keyframe id → (stamp, pose as received): the odometry alone, for comparison.
+    received: BTreeMap<u64, (u64, SE3)>,
     since_optimized: usize,
     optimizer: Option<Optimizer>,
+    /// The distributed back-end, when this robot is part of a team.
+    team: Option<TeamBridge>,
     report: BackendReport,
 }
 
@@ -106,10 +122,38 @@ impl BackendState {
             next_id: None,
             odometry: HashSet::new(),
             pending: VecDeque::new(),
+            closures: HashSet::new(),
+            pending_closures: VecDeque::new(),
+            received: BTreeMap::new(),
             since_optimized: 0,
             optimizer: None,
+            team: None,
             report: BackendReport::default(),
         })
+    }
+
+    /// Adds the distributed back-end: every keyframe, edge and closure (recovered ones
+    /// too: add it before [`Self::recover`]) is also given to it.
+    pub fn with_team(mut self, bridge: TeamBridge) -> Self {
+        self.team = Some(bridge);
+        self
+    }
+
+    pub fn team(&self) -> Option<&TeamBridge> {
+        self.team.as_ref()
+    }
+    pub fn team_mut(&mut self) -> Option<&mut TeamBridge> {
+        self.team.as_mut()
+    }
+
+    /// Keyframe id → (stamp, pose as the front-end sent it).
+    pub fn received_poses(&self) -> &BTreeMap<u64, (u64, SE3)> {
+        &self.received
+    }
+
+    /// Closures waiting for a keyframe of this robot.
+    pub fn pending_closures(&self) -> usize {
+        self.pending_closures.len()
     }
 
     pub fn graph(&self) -> &PoseGraph<SE3> {
@@ -171,6 +215,26 @@ impl BackendState {
                             self.report.recovered_edges += 1;
                         }
                     }),
+                Entry::Closure {
+                    key_a,
+                    key_b,
+                    relative,
+                    information,
+                    inliers,
+                } => check_journaled_closure(
+                    self.robot_index,
+                    *key_a,
+                    *key_b,
+                    relative,
+                    information,
+                    *inliers,
+                )
+                .map(|c| {
+                    if self.can_insert_closure(&c) {
+                        self.insert_closure(c);
+                        self.report.recovered_closures += 1;
+                    }
+                }),
             };
             if let Err(e) = checked {
                 tracing::error!("backend: journal entry skipped: {e}");
@@ -216,6 +280,46 @@ impl BackendState {
         self.since_optimized += 1;
         self.flush_pending(journal)?;
         Ok(outcome)
+    }
+
+    /// An inter-robot loop closure from the team link: checked, de-duplicated (either
+    /// direction), then journaled and applied once this robot's keyframe is in the graph.
+    pub fn on_closure(
+        &mut self,
+        lc: &LoopClosure,
+        journal: &mut impl Append,
+    ) -> Result<Outcome, JournalError> {
+        let input = match check_own_closure(lc, self.robot_index) {
+            Ok(i) => i,
+            Err(e) => return Ok(self.rejected(e)),
+        };
+        let pair = (input.key_a, input.key_b);
+        if self.closures.contains(&pair)
+            || self
+                .pending_closures
+                .iter()
+                .any(|c| (c.key_a, c.key_b) == pair || (c.key_b, c.key_a) == pair)
+        {
+            self.report.duplicates += 1;
+            return Ok(Outcome::Duplicate);
+        }
+        if self.can_insert_closure(&input) {
+            self.journal_closure(&input, journal)?;
+            self.insert_closure(input);
+            self.report.accepted_closures += 1;
+            return Ok(Outcome::Accepted);
+        }
+        if self.pending_closures.len() >= MAX_PENDING_EDGES {
+            if let Some(old) = self.pending_closures.pop_front() {
+                self.report.expired_closures += 1;
+                tracing::warn!(
+                    closure = %format!("{} - {}", key::label(old.key_a), key::label(old.key_b)),
+                    "backend: loop closure dropped after waiting for a keyframe that never came"
+                );
+            }
+        }
+        self.pending_closures.push_back(input);
+        Ok(Outcome::Waiting)
     }
 
     /// An odometry edge sample: checked, de-duplicated, then journaled and applied once
@@ -296,7 +400,56 @@ impl BackendState {
     fn insert_keyframe(&mut self, input: &KeyframeInput) {
         let k = self.key(input.id);
         self.graph.add_pose(k, input.pose);
+        self.received.insert(input.id, (input.stamp_ns, input.pose));
         self.next_id = Some(self.next_id.map_or(input.id + 1, |n| n.max(input.id + 1)));
+        if let Some(team) = self.team.as_mut() {
+            if let Err(e) = team.add_pose(k, input.pose) {
+                self.report.team_refused += 1;
+                tracing::error!("backend: distributed back-end refused keyframe {}: {e}", input.id);
+            }
+        }
+    }
+
+    /// Whether this robot's keyframe of the closure is in the graph (and the closure is new).
+    fn can_insert_closure(&self, c: &ClosureInput) -> bool {
+        let own = if key::robot(c.key_a) == Some(self.robot) {
+            c.key_a
+        } else {
+            c.key_b
+        };
+        self.graph.index_of(own).is_some()
+            && !self.closures.contains(&(c.key_a, c.key_b))
+    }
+
+    fn journal_closure(
+        &mut self,
+        c: &ClosureInput,
+        journal: &mut impl Append,
+    ) -> Result<(), JournalError> {
+        journal.append(&Entry::Closure {
+            key_a: c.key_a,
+            key_b: c.key_b,
+            relative: pose_to_array(&c.relative),
+            information: upper_from_matrix(&c.information),
+            inliers: u64::from(c.inliers),
+        })
+    }
+
+    /// Records a closure whose keyframe of this robot is in the graph; the local graph
+    /// holds this robot's poses only, so the closure goes to the distributed back-end.
+    fn insert_closure(&mut self, c: ClosureInput) {
+        self.closures.insert((c.key_a, c.key_b));
+        self.closures.insert((c.key_b, c.key_a));
+        if let Some(team) = self.team.as_mut() {
+            if let Err(e) = team.add_closure(c.key_a, c.key_b, c.relative, c.information) {
+                self.report.team_refused += 1;
+                tracing::error!(
+                    "backend: distributed back-end refused closure {} - {}: {e}",
+                    key::label(c.key_a),
+                    key::label(c.key_b)
+                );
+            }
+        }
     }
 
     fn can_insert_edge(&self, e: &OdometryInput) -> bool {
@@ -331,6 +484,17 @@ impl BackendState {
         match self.graph.add_edge(a, b, e.relative, e.information) {
             Ok(_) => {
                 self.odometry.insert((e.from, e.to));
+                let (ka, kb) = (self.key(e.from), self.key(e.to));
+                if let Some(team) = self.team.as_mut() {
+                    if let Err(err) = team.add_odometry(ka, kb, e.relative, e.information) {
+                        self.report.team_refused += 1;
+                        tracing::error!(
+                            from = e.from,
+                            to = e.to,
+                            "backend: distributed back-end refused odometry edge: {err}"
+                        );
+                    }
+                }
             }
             Err(err) => tracing::error!(
                 from = e.from,
@@ -353,6 +517,17 @@ impl BackendState {
             }
         }
         self.pending = waiting;
+        let mut waiting = VecDeque::with_capacity(self.pending_closures.len());
+        while let Some(c) = self.pending_closures.pop_front() {
+            if self.can_insert_closure(&c) {
+                self.journal_closure(&c, journal)?;
+                self.insert_closure(c);
+                self.report.accepted_closures += 1;
+            } else {
+                waiting.push_back(c);
+            }
+        }
+        self.pending_closures = waiting;
         Ok(())
     }
 }

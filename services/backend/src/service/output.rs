@@ -1,0 +1,200 @@
+//! What the back-end leaves in its state folder for people and tools, rewritten
+//! atomically (temporary file + rename) every `write_every` and when it stops:
+//!
+//! - `odometry.tum`: every keyframe's pose as the front-end sent it (the odometry alone),
+//!   TUM format (`stamp_s x y z qx qy qz qw`, stamps from the keyframes);
+//! - `team_estimate.tum`: the distributed back-end's estimate of this robot's keyframes,
+//!   in the team's frame (the lowest robot's first keyframe) once anchored, TUM format;
+//! - `backend.json`: counters ([`BackendReport`]), the relay's and the agent's, closures
+//!   rejected by PCM, present peers, whether the team estimate converged.
+//!
+//! `doorslam eval ate team_estimate.tum groundtruth.tum --format tum` compares them.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use doorslam_geometry::{key, SE3};
+use serde::Serialize;
+
+use super::state::{BackendReport, BackendState};
+use super::team::BridgeStats;
+use super::ServiceError;
+
+/// The output files of one back-end.
+#[derive(Debug, Clone)]
+pub struct Outputs {
+    dir: PathBuf,
+}
+
+/// `backend.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Status {
+    pub keyframes: usize,
+    pub odometry_edges: usize,
+    pub closures: usize,
+    pub closures_waiting: usize,
+    pub report: ReportJson,
+    pub team: Option<TeamStatus>,
+}
+
+/// The counters of [`BackendReport`] that matter to an operator.
+#[derive(Debug, Clone, Serialize)]
+pub struct ReportJson {
+    pub accepted_keyframes: usize,
+    pub accepted_edges: usize,
+    pub accepted_closures: usize,
+    pub recovered_keyframes: usize,
+    pub recovered_edges: usize,
+    pub recovered_closures: usize,
+    pub duplicates: usize,
+    pub gaps: usize,
+    pub rejected: usize,
+    pub optimizations: usize,
+    pub failed_optimizations: usize,
+    pub team_refused: usize,
+}
+
+impl From<&BackendReport> for ReportJson {
+    fn from(r: &BackendReport) -> Self {
+        Self {
+            accepted_keyframes: r.accepted_keyframes,
+            accepted_edges: r.accepted_edges,
+            accepted_closures: r.accepted_closures,
+            recovered_keyframes: r.recovered_keyframes,
+            recovered_edges: r.recovered_edges,
+            recovered_closures: r.recovered_closures,
+            duplicates: r.duplicates,
+            gaps: r.gaps,
+            rejected: r.rejected,
+            optimizations: r.optimizations,
+            failed_optimizations: r.failed_optimizations,
+            team_refused: r.team_refused,
+        }
+    }
+}
+
+/// The distributed back-end's state.
+#[derive(Debug, Clone, Serialize)]
+pub struct TeamStatus {
+    pub epoch: u64,
+    pub anchored: bool,
+    /// The robot (key letter) whose first keyframe is the team frame.
+    pub anchor: String,
+    pub converged: bool,
+    pub present: Vec<String>,
+    pub neighbors: Vec<String>,
+    /// Closures PCM left out of the last solve, as key labels.
+    pub rejected_closures: Vec<[String; 2]>,
+    pub steps: u64,
+    pub updates: u64,
+    pub relay: BridgeStats,
+}
+
+/// A robot's key letter (`a` for 0): the label of its keyframe 0 without the index.
+fn letter(r: u8) -> String {
+    match key::symbol(r, 0) {
+        Ok(k) => {
+            let mut l = key::label(k);
+            l.pop();
+            l
+        }
+        Err(_) => r.to_string(),
+    }
+}
+
+/// One TUM line.
+fn tum_line(out: &mut String, stamp_ns: u64, p: &SE3) {
+    let t = p.translation.vector;
+    let q = p.rotation.quaternion();
+    let _ = writeln!(
+        out,
+        "{:.9} {:.6} {:.6} {:.6} {:.9} {:.9} {:.9} {:.9}",
+        stamp_ns as f64 * 1e-9,
+        t.x,
+        t.y,
+        t.z,
+        q.i,
+        q.j,
+        q.k,
+        q.w
+    );
+}
+
+impl Outputs {
+    pub fn new(dir: &Path) -> Self {
+        Self {
+            dir: dir.to_path_buf(),
+        }
+    }
+
+    fn write_file(&self, name: &str, text: &str) -> Result<(), ServiceError> {
+        let path = self.dir.join(name);
+        let tmp = self.dir.join(format!(".{name}.tmp"));
+        let io = |source| ServiceError::Output {
+            path: path.clone(),
+            source,
+        };
+        std::fs::write(&tmp, text).map_err(io)?;
+        std::fs::rename(&tmp, &path).map_err(io)
+    }
+
+    /// The status of `state` (what `backend.json` holds).
+    pub fn status(state: &BackendState) -> Status {
+        let team = state.team().map(|b| {
+            let a = b.agent();
+            let stats = a.stats();
+            TeamStatus {
+                epoch: b.epoch(),
+                anchored: a.anchored(),
+                anchor: letter(a.anchor()),
+                converged: a.converged(),
+                present: b.present().map(letter).collect(),
+                neighbors: a.neighbors().map(letter).collect(),
+                rejected_closures: a
+                    .rejected_closures()
+                    .iter()
+                    .filter(|(x, y)| x < y)
+                    .map(|&(x, y)| [key::label(x), key::label(y)])
+                    .collect(),
+                steps: stats.steps,
+                updates: stats.updates,
+                relay: b.stats(),
+            }
+        });
+        let report = state.report();
+        Status {
+            keyframes: state.graph().len(),
+            odometry_edges: state.graph().edges().len(),
+            closures: report.accepted_closures + report.recovered_closures,
+            closures_waiting: state.pending_closures(),
+            report: report.into(),
+            team,
+        }
+    }
+
+    /// Writes the three files.
+    pub fn write(&self, state: &BackendState) -> Result<(), ServiceError> {
+        let received = state.received_poses();
+        let mut odometry = String::new();
+        for (stamp, pose) in received.values() {
+            tum_line(&mut odometry, *stamp, pose);
+        }
+        self.write_file("odometry.tum", &odometry)?;
+        if let Some(bridge) = state.team() {
+            let mut team = String::new();
+            for (k, pose) in bridge.estimate() {
+                if let Some((stamp, _)) = received.get(&key::index(k)) {
+                    tum_line(&mut team, *stamp, pose);
+                }
+            }
+            self.write_file("team_estimate.tum", &team)?;
+        }
+        let json = serde_json::to_string_pretty(&Self::status(state)).map_err(|e| {
+            ServiceError::Output {
+                path: self.dir.join("backend.json"),
+                source: std::io::Error::other(e),
+            }
+        })?;
+        self.write_file("backend.json", &json)
+    }
+}

@@ -1,0 +1,305 @@
+//! The back-end's side of the team: the distributed back-end's [`Agent`] behind the
+//! relay with the team link (iceoryx2 topics `team-in` / `team-out`, one
+//! [`doorslam_ipc::WireEnvelope`] per event or message).
+//!
+//! The team link is the transport: it delivers every message it takes to the peer once
+//! (acknowledged and resent across meetings, see `doorslam-team`'s protocol), so the
+//! agent's own acknowledgements are not sent over the radio. Instead each message handed
+//! to the team link is acknowledged to the agent at once, in the peer's name and epoch
+//! (what the agent would have received from the peer), and the agent's own `Ack`s are
+//! dropped. Two cases break "delivered once", and both are announced by the ends of the
+//! relay: the team link restarted (messages it held are gone: [`EnvelopeEvent::TeamStarted`]
+//! makes the agent send everything again) and a peer's team link restarted (a new epoch in
+//! its Hello: the agent sees it in the next message's header and sends everything again).
+//! A restart of this back-end is announced to the team link
+//! ([`EnvelopeEvent::BackendStarted`]), which starts a new epoch of its own so that peers
+//! send their state again.
+//!
+//! This is a plain struct fed by values: no iceoryx2 here, tested in-process.
+
+use std::collections::BTreeMap;
+
+use doorslam_geometry::{key, TangentMatrix, SE3};
+use doorslam_ipc::wire::{Ack, Body, Header, Message, RobotId};
+use doorslam_ipc::EnvelopeEvent;
+
+use crate::distributed::{Agent, AgentOptions, AgentStats, DpgoError};
+
+/// What the bridge did, for the status file and tests.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct BridgeStats {
+    /// Messages received from peers and given to the agent.
+    pub messages_in: u64,
+    /// Messages handed to the team link.
+    pub messages_out: u64,
+    /// Bytes of those messages (encoded wire messages, headers included: what the team
+    /// link publishes is a header of its own plus this body).
+    pub bytes_out: u64,
+    /// Messages from peers the agent refused (malformed, not a back-end kind, ...).
+    pub refused: u64,
+    /// Envelopes that were not understood (unknown event, undecodable message).
+    pub bad_envelopes: u64,
+    /// Times the team link restarted behind this back-end.
+    pub team_restarts: u64,
+}
+
+/// One peer as the team link reported it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Peer {
+    /// The peer's team-link epoch, from its Hello.
+    epoch: u64,
+    present: bool,
+}
+
+/// Why an envelope from the team link was not used.
+#[derive(Debug, thiserror::Error)]
+pub enum BridgeError {
+    #[error("team-in envelope with unknown event {0}")]
+    UnknownEvent(u32),
+    #[error("team-in envelope for robot {0}: not a robot number (0..26)")]
+    Robot(u32),
+    #[error("team-in message from robot {robot} does not decode: {reason}")]
+    Decode { robot: u8, reason: String },
+    #[error("team-in envelope of event {0:?} is not for the back-end")]
+    Unexpected(EnvelopeEvent),
+    #[error("message from robot {robot} refused: {source}")]
+    Refused {
+        robot: u8,
+        #[source]
+        source: DpgoError,
+    },
+}
+
+/// The distributed back-end of one robot and its relay with the team link.
+#[derive(Debug)]
+pub struct TeamBridge {
+    agent: Agent,
+    robot: u8,
+    /// The agent's epoch: this back-end's start count (acknowledgements carry it).
+    epoch: u64,
+    peers: BTreeMap<u8, Peer>,
+    /// The team link's epoch last announced.
+    team_epoch: Option<u64>,
+    /// Something changed since the agent last stepped.
+    dirty: bool,
+    stats: BridgeStats,
+}
+
+impl TeamBridge {
+    /// The bridge of robot `robot` (0 = 'a') with wire id `id`; `epoch` must grow at every
+    /// start of the back-end (see `super::next_epoch`).
+    pub fn new(robot: u8, id: RobotId, epoch: u64, options: AgentOptions) -> Self {
+        Self {
+            agent: Agent::new(robot, id, epoch, options),
+            robot,
+            epoch,
+            peers: BTreeMap::new(),
+            team_epoch: None,
+            dirty: true,
+            stats: BridgeStats::default(),
+        }
+    }
+
+    pub fn epoch(&self) -> u64 {
+        self.epoch
+    }
+    pub fn agent(&self) -> &Agent {
+        &self.agent
+    }
+    pub fn stats(&self) -> BridgeStats {
+        self.stats
+    }
+    pub fn agent_stats(&self) -> AgentStats {
+        self.agent.stats()
+    }
+    /// Peers the team link reports present.
+    pub fn present(&self) -> impl Iterator<Item = u8> + '_ {
+        self.peers
+            .iter()
+            .filter(|(_, p)| p.present)
+            .map(|(r, _)| *r)
+    }
+
+    /// A keyframe of this robot (in index order).
+    pub fn add_pose(&mut self, k: u64, pose: SE3) -> Result<(), DpgoError> {
+        self.dirty = true;
+        self.agent.add_pose(k, pose)
+    }
+
+    /// An odometry edge between two keyframes of this robot.
+    pub fn add_odometry(
+        &mut self,
+        a: u64,
+        b: u64,
+        z: SE3,
+        information: TangentMatrix,
+    ) -> Result<(), DpgoError> {
+        self.dirty = true;
+        self.agent.add_odometry(a, b, z, information)
+    }
+
+    /// A verified inter-robot loop closure (outliers are PCM's job, inside the agent).
+    pub fn add_closure(
+        &mut self,
+        a: u64,
+        b: u64,
+        z: SE3,
+        information: TangentMatrix,
+    ) -> Result<(), DpgoError> {
+        self.dirty = true;
+        let result = self.agent.add_closure(a, b, z, information);
+        // A closure with a peer already present: the agent learns it is present now.
+        for (&r, p) in &self.peers {
+            self.agent.set_present(r, p.present);
+        }
+        result
+    }
+
+    /// One envelope from the team link. `Ok(true)` when the back-end must announce itself
+    /// (the team link restarted and does not know this back-end's epoch).
+    pub fn on_envelope(
+        &mut self,
+        event: u32,
+        peer_robot: u32,
+        epoch: u64,
+        bytes: &[u8],
+    ) -> Result<bool, BridgeError> {
+        let event = EnvelopeEvent::try_from(event).map_err(|e| {
+            self.stats.bad_envelopes += 1;
+            BridgeError::UnknownEvent(e)
+        })?;
+        let robot = || key::robot_index(peer_robot).map_err(|_| BridgeError::Robot(peer_robot));
+        match event {
+            EnvelopeEvent::TeamStarted => {
+                if self.team_epoch.is_some_and(|e| e != epoch) {
+                    // Messages the old team link had not delivered are gone.
+                    self.stats.team_restarts += 1;
+                    let neighbours: Vec<u8> = self.agent.neighbors().collect();
+                    for n in neighbours {
+                        self.agent.link_restarted(n);
+                    }
+                    for p in self.peers.values_mut() {
+                        p.present = false;
+                    }
+                    for r in self.peers.keys() {
+                        self.agent.set_present(*r, false);
+                    }
+                }
+                self.team_epoch = Some(epoch);
+                self.dirty = true;
+                Ok(true)
+            }
+            EnvelopeEvent::PeerPresent | EnvelopeEvent::PeerAbsent => {
+                let r = robot().inspect_err(|_| self.stats.bad_envelopes += 1)?;
+                if r == self.robot {
+                    self.stats.bad_envelopes += 1;
+                    return Err(BridgeError::Robot(peer_robot));
+                }
+                let present = event == EnvelopeEvent::PeerPresent;
+                let peer = self.peers.entry(r).or_insert(Peer { epoch, present });
+                peer.present = present;
+                if present {
+                    peer.epoch = epoch;
+                }
+                self.agent.set_present(r, present);
+                self.dirty = true;
+                Ok(false)
+            }
+            EnvelopeEvent::Message => {
+                let r = robot().inspect_err(|_| self.stats.bad_envelopes += 1)?;
+                let message = Message::decode(bytes).map_err(|e| {
+                    self.stats.bad_envelopes += 1;
+                    BridgeError::Decode {
+                        robot: r,
+                        reason: e.to_string(),
+                    }
+                })?;
+                self.stats.messages_in += 1;
+                self.dirty = true;
+                self.agent.receive(r, &message).map_err(|source| {
+                    self.stats.refused += 1;
+                    BridgeError::Refused { robot: r, source }
+                })?;
+                Ok(false)
+            }
+            EnvelopeEvent::BackendStarted => {
+                self.stats.bad_envelopes += 1;
+                Err(BridgeError::Unexpected(event))
+            }
+        }
+    }
+
+    /// Iterates the agent when something changed (new keyframes, closures, messages,
+    /// peers); whether it solved anything.
+    pub fn step(&mut self) -> Result<bool, DpgoError> {
+        if !self.dirty {
+            return Ok(false);
+        }
+        self.dirty = false;
+        let solved = self.agent.step()?;
+        // Messages still due (a neighbour newly present, forwarding delays) need more steps.
+        if !self.agent.converged() {
+            self.dirty = true;
+        }
+        Ok(solved)
+    }
+
+    /// The messages to hand to the team link now, encoded, per peer robot. Each is
+    /// acknowledged to the agent at once (see the module documentation).
+    pub fn outgoing(&mut self) -> Result<Vec<(u8, Vec<u8>)>, DpgoError> {
+        let mut out = Vec::new();
+        let present: Vec<(u8, u64)> = self
+            .peers
+            .iter()
+            .filter(|(_, p)| p.present)
+            .map(|(r, p)| (*r, p.epoch))
+            .collect();
+        for (r, peer_epoch) in present {
+            for m in self.agent.messages_for(r)? {
+                if matches!(m.body, Body::Ack(_)) {
+                    continue;
+                }
+                let bytes = match m.encode() {
+                    Ok(b) => b,
+                    Err(e) => {
+                        // Our own message: a bug, logged and not sent.
+                        tracing::error!(peer = r, error = %e, "backend: own message does not encode");
+                        continue;
+                    }
+                };
+                let ack = synthetic_ack(r, peer_epoch, self.epoch, &m);
+                self.agent.receive(r, &ack)?;
+                self.stats.messages_out += 1;
+                self.stats.bytes_out += bytes.len() as u64;
+                out.push((r, bytes));
+            }
+        }
+        Ok(out)
+    }
+
+    /// This robot's poses: in the team's frame once the agent is anchored (see
+    /// [`Agent::anchored`]), the odometry's frame before.
+    pub fn estimate(&self) -> impl Iterator<Item = (u64, &SE3)> + '_ {
+        self.agent.estimate()
+    }
+}
+
+/// The acknowledgement the peer `r` would send for `m`: in its name and team-link epoch,
+/// for this agent's epoch, covering every sequence of `m`'s kind up to `m`'s.
+fn synthetic_ack(r: u8, peer_epoch: u64, own_epoch: u64, m: &Message) -> Message {
+    // The agent reads the epoch and sequences of an acknowledgement, not its sender.
+    let sender = RobotId::new(&format!("robot{r}")).unwrap_or_else(|_| m.header.sender.clone());
+    Message::new(
+        Header {
+            sender,
+            epoch: peer_epoch,
+            sequence: m.header.sequence,
+        },
+        Body::Ack(Ack {
+            epoch: own_epoch,
+            kind: m.kind(),
+            next: m.header.sequence + 1,
+            received: Vec::new(),
+        }),
+    )
+}
