@@ -15,26 +15,11 @@ use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
-fn sh(args: &[&str]) -> Result<String, String> {
-    let out = Command::new(args[0])
-        .args(&args[1..])
-        .output()
-        .map_err(|e| format!("{}: {e}", args.join(" ")))?;
-    if !out.status.success() {
-        return Err(format!(
-            "{} failed: {}",
-            args.join(" "),
-            String::from_utf8_lossy(&out.stderr)
-        ));
-    }
-    Ok(String::from_utf8_lossy(&out.stdout).into_owned())
-}
-
-/// Two namespaces on one bridge; removed on drop, with the robots' processes.
+/// Two robots' namespaces on one bridge (`doorslam_hil::netns`, removed on drop) and
+/// the robots' processes, killed first.
 struct Net {
+    inner: doorslam_hil::netns::Net,
     ns: [String; 2],
-    bridge: String,
-    veth: [String; 2],
     addr: [String; 2],
     children: Vec<Child>,
 }
@@ -42,112 +27,40 @@ struct Net {
 impl Net {
     /// `tag`: one letter per test of this file (they run in parallel).
     fn new(tag: char) -> Result<Net, String> {
-        let id = std::process::id() % 100_000;
-        let net = Net {
-            ns: [format!("dst{id}{tag}a"), format!("dst{id}{tag}b")],
-            bridge: format!("dsbr{id}{tag}"),
-            veth: [format!("ds{tag}a{id}"), format!("ds{tag}b{id}")],
-            addr: ["10.213.7.1".into(), "10.213.7.2".into()],
+        let inner = doorslam_hil::netns::Net::new(&format!("t{tag}"), 2, [213, 7])
+            .map_err(|e| e.to_string())?;
+        Ok(Net {
+            ns: [inner.namespace(0).into(), inner.namespace(1).into()],
+            addr: [inner.addr(0).into(), inner.addr(1).into()],
+            inner,
             children: Vec::new(),
-        };
-        sh(&["ip", "link", "add", &net.bridge, "type", "bridge"])?;
-        sh(&["ip", "link", "set", &net.bridge, "up"])?;
-        for i in 0..2 {
-            let (ns, veth, peer) = (&net.ns[i], &net.veth[i], format!("{}p", net.veth[i]));
-            sh(&["ip", "netns", "add", ns])?;
-            sh(&[
-                "ip", "link", "add", veth, "type", "veth", "peer", "name", &peer,
-            ])?;
-            sh(&["ip", "link", "set", &peer, "master", &net.bridge, "up"])?;
-            sh(&["ip", "link", "set", veth, "netns", ns])?;
-            let cidr = format!("{}/24", net.addr[i]);
-            sh(&["ip", "-n", ns, "addr", "add", &cidr, "dev", veth])?;
-            sh(&["ip", "-n", ns, "link", "set", veth, "up"])?;
-            sh(&["ip", "-n", ns, "link", "set", "lo", "up"])?;
-        }
-        Ok(net)
+        })
     }
 
-    /// Out of radio range: robot b drops everything from and to robot a.
+    /// Out of radio range: each robot drops everything from and to the other.
     fn cut(&self) -> Result<(), String> {
-        let rules = format!(
-            "add table inet dscut; \
-             add chain inet dscut in {{ type filter hook input priority 0; }}; \
-             add rule inet dscut in ip saddr {a} drop; \
-             add chain inet dscut out {{ type filter hook output priority 0; }}; \
-             add rule inet dscut out ip daddr {a} drop",
-            a = self.addr[0]
-        );
-        sh(&["ip", "netns", "exec", &self.ns[1], "nft", &rules])?;
-        Ok(())
+        self.inner.cut(0, 1).map_err(|e| e.to_string())
     }
 
     fn rejoin(&self) -> Result<(), String> {
-        sh(&[
-            "ip",
-            "netns",
-            "exec",
-            &self.ns[1],
-            "nft",
-            "delete",
-            "table",
-            "inet",
-            "dscut",
-        ])?;
-        Ok(())
+        self.inner.join(0, 1).map_err(|e| e.to_string())
     }
 
     /// Radio-like link: every interface capped at `kbit` (tc tbf) and each robot dropping
     /// `loss_percent` of the packets from the other at random (nftables numgen).
     fn radio(&self, kbit: u32, loss_percent: u32) -> Result<(), String> {
-        for i in 0..2 {
-            let rate = format!("{kbit}kbit");
-            sh(&[
-                "ip",
-                "netns",
-                "exec",
-                &self.ns[i],
-                "tc",
-                "qdisc",
-                "add",
-                "dev",
-                &self.veth[i],
-                "root",
-                "tbf",
-                "rate",
-                &rate,
-                "burst",
-                "4kb",
-                "latency",
-                "400ms",
-            ])?;
-            let rules = format!(
-                "add table inet dsloss; \
-                 add chain inet dsloss in {{ type filter hook input priority 0; }}; \
-                 add rule inet dsloss in ip saddr {peer} numgen random mod 100 < {loss_percent} drop",
-                peer = self.addr[1 - i]
-            );
-            sh(&["ip", "netns", "exec", &self.ns[i], "nft", &rules])?;
-        }
-        Ok(())
+        self.inner
+            .radio(kbit, loss_percent)
+            .map_err(|e| e.to_string())
     }
 
     /// The loss ends (the cap stays).
     fn clear_loss(&self) -> Result<(), String> {
-        for ns in &self.ns {
-            sh(&[
-                "ip", "netns", "exec", ns, "nft", "delete", "table", "inet", "dsloss",
-            ])?;
-        }
-        Ok(())
+        self.inner.clear_loss().map_err(|e| e.to_string())
     }
 
     fn tx_bytes(&self, i: usize) -> u64 {
-        let path = format!("/sys/class/net/{}/statistics/tx_bytes", self.veth[i]);
-        sh(&["ip", "netns", "exec", &self.ns[i], "cat", &path])
-            .ok()
-            .and_then(|s| s.trim().parse().ok())
-            .unwrap_or(0)
+        self.inner.tx_bytes(i)
     }
 }
 
@@ -157,10 +70,6 @@ impl Drop for Net {
             let _ = c.kill();
             let _ = c.wait();
         }
-        for ns in &self.ns {
-            let _ = sh(&["ip", "netns", "del", ns]);
-        }
-        let _ = sh(&["ip", "link", "del", &self.bridge]);
     }
 }
 
@@ -261,7 +170,7 @@ fn require_root_and_tools() {
     );
     for tool in [["ip", "-V"], ["nft", "--version"]] {
         assert!(
-            sh(&tool).is_ok(),
+            doorslam_hil::netns::sh(&tool).is_ok(),
             "`{}` not found: run deploy/setup (installs iproute2 and nftables)",
             tool[0]
         );

@@ -28,11 +28,13 @@
 
 mod camera;
 mod cull;
+pub mod demo;
 mod error;
 pub mod experiments;
 pub mod flights;
 mod geometry;
 mod image;
+pub mod netns;
 mod noise;
 pub mod posegraph_sim;
 mod render;

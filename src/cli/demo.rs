@@ -1,201 +1,155 @@
-//! `doorslam demo`: until the end-to-end SLAM demo exists (next wave), the demo is a
-//! check of the whole dependency stack on real data, each step using the real library
-//! the way the services will: OpenCV features on a EuRoC stereo pair, the pair through
-//! iceoryx2 shared memory, a descriptor head in onnxruntime, the descriptor between two
-//! Zenoh peers on loopback, and a sparse Cholesky solve with faer. No step here is SLAM,
-//! and nothing here is reported as visual odometry.
+//! `doorslam demo`: a team of robots flies through the synthetic town (or a dataset split
+//! into robots), every robot a host of its own running its full set of services, and a
+//! report folder people can look at (`doorslam_hil::demo`). One live line per robot.
 
+use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use anyhow::{bail, ensure, Context, Result};
+use anyhow::{Context, Result};
 use clap::Args;
-use doorslam_frontend::opencv::prelude::*;
-use doorslam_team::zenoh::Wait;
+use doorslam_hil::demo::{self, DemoConfig, Kill, Phase, Snapshot};
+use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 
 #[derive(Debug, Args)]
 pub struct DemoArgs {
-    /// The shared data folder (default: $DOORSLAM_DATA, else ../shared/data).
+    /// Robots in the team.
+    #[arg(long, default_value_t = 3)]
+    pub robots: usize,
+    /// Frames per robot (10 per second of flight).
+    #[arg(long, default_value_t = 300)]
+    pub frames: usize,
+    /// A KITTI-layout folder (with poses.txt) split into the robots, instead of the town.
     #[arg(long)]
-    pub data: Option<PathBuf>,
+    pub dataset: Option<PathBuf>,
+    /// The report folder (default: a new `doorslam-demo-<unix time>` here).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Kill every process of one robot at a flight time, e.g. `b@12`; it restarts after
+    /// `--restart-after-s` from its journal and rejoins.
+    #[arg(long)]
+    pub kill: Option<Kill>,
+    #[arg(long, default_value_t = 3.0)]
+    pub restart_after_s: f64,
+    /// Replay speed (1 = real time).
+    #[arg(long, default_value_t = 1.0)]
+    pub rate: f64,
+    /// Seed of the town and the flights.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Most seconds to wait at base, after the flight, for the team estimate to settle.
+    #[arg(long, default_value_t = 30.0)]
+    pub settle_s: f64,
+    /// Print `summary.json` on stdout at the end.
+    #[arg(long)]
+    pub json: bool,
 }
 
-fn step(name: &str, detail: String, t: Instant) {
-    println!(
-        "  ok  {name:<14} {detail} ({:.1} ms)",
-        t.elapsed().as_secs_f64() * 1e3
-    );
+fn robot_line(r: &demo::RobotSnapshot) -> String {
+    let frames = match (r.frames, r.lost) {
+        (Some(f), Some(l)) if l > 0 => format!("frames {f:4} (lost {l})  "),
+        (Some(f), _) => format!("frames {f:4}  "),
+        _ => String::new(),
+    };
+    format!(
+        "{:?}  {frames}keyframes {:3}  rendezvous {:2}  closures {:3} ({} rejected)  rounds {:3}  sent {:7.1} kB{}",
+        r.state,
+        r.keyframes,
+        r.rendezvous,
+        r.closures,
+        r.rejected,
+        r.rounds,
+        r.bytes_sent as f64 / 1e3,
+        if r.converged { "  converged" } else { "" }
+    )
+}
+
+fn header(s: &Snapshot) -> String {
+    match s.phase {
+        Phase::Rendering => format!("rendering the flights: {}/{} stereo frames", s.rendered.0, s.rendered.1),
+        Phase::Starting => "starting the robots".into(),
+        Phase::Flying => format!("flying: {:5.1} / {:.1} s", s.flight_s, s.flight_total_s),
+        Phase::AtBase => "back at base: every robot in range, waiting for the team estimate to settle".into(),
+        Phase::Stopping => "stopping the robots".into(),
+        Phase::Reporting => "writing the report".into(),
+    }
 }
 
 pub fn run(args: DemoArgs) -> Result<()> {
-    let data = args
-        .data
-        .or_else(|| std::env::var_os("DOORSLAM_DATA").map(PathBuf::from))
-        .unwrap_or_else(|| PathBuf::from("../shared/data"));
-    let pair = data.join("stereo/euroc_loop_closure_pairs");
-    ensure!(
-        pair.is_dir(),
-        "data folder {} not found: pass --data or set DOORSLAM_DATA",
-        pair.display()
-    );
-    println!("doorslam demo: dependency-stack check on real data (the SLAM demo arrives with the end-to-end issue)");
+    let exe = std::env::current_exe().context("locating the doorslam binary")?;
+    let out = args.out.clone().unwrap_or_else(|| {
+        let t = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        PathBuf::from(format!("doorslam-demo-{t}"))
+    });
+    let mut config = DemoConfig::new(exe, out.clone());
+    config.robots = args.robots;
+    config.frames = args.frames;
+    config.dataset = args.dataset.clone();
+    config.kill = args.kill;
+    config.restart_after_s = args.restart_after_s;
+    config.rate = args.rate;
+    config.seed = args.seed;
+    config.settle_s = args.settle_s;
 
-    // OpenCV: the front-end's feature detector on a real EuRoC frame.
-    let t = Instant::now();
-    let left = doorslam_frontend::load_gray(&pair.join("left_img_0.png"))?;
-    let right = doorslam_frontend::load_gray(&pair.join("right_img_0.png"))?;
-    let orb = doorslam_frontend::detect_orb(&left, 1000)?;
-    step(
-        "opencv",
-        format!(
-            "{} ORB features on {}x{} EuRoC V1_01 left image",
-            orb.points.len(),
-            left.cols(),
-            left.rows()
-        ),
-        t,
-    );
-
-    // iceoryx2: the stereo pair written once into a loaned shared-memory sample and read back.
-    let t = Instant::now();
-    let robot = format!("demo{}", std::process::id());
-    let (node, cleaned) = doorslam_ipc::create_node("doorslam-demo")?;
-    let service = doorslam_ipc::open_frames(&node, &robot)?;
-    let subscriber = service
-        .subscriber_builder()
-        .create()
-        .context("iceoryx2 subscriber")?;
-    let publisher = service
-        .publisher_builder()
-        .create()
-        .context("iceoryx2 publisher")?;
-    let header = doorslam_ipc::FrameHeader {
-        width: left.cols() as u32,
-        height: left.rows() as u32,
-        ..Default::default()
-    };
-    let (l, r) = (left.data_bytes()?, right.data_bytes()?);
-    let mut sample = publisher.loan_uninit().context("iceoryx2 loan")?;
-    doorslam_ipc::StereoFrame::write(sample.payload_mut(), header, l, r)?;
-    // SAFETY: `StereoFrame::write` initialized the sample.
-    unsafe { sample.assume_init() }
-        .send()
-        .context("iceoryx2 send")?;
-    let Some(received) = subscriber.receive().context("iceoryx2 receive")? else {
-        bail!(
-            "iceoryx2: the frame published on {} was not received",
-            doorslam_ipc::service_name(&robot, doorslam_ipc::Topic::Frames)
-        );
-    };
-    ensure!(
-        received.payload().left_image()? == l && received.payload().right_image()? == r,
-        "iceoryx2: frame corrupted"
-    );
-    step(
-        "iceoryx2",
-        format!(
-            "{} KB stereo frame through shared memory ({cleaned} dead nodes cleaned)",
-            (l.len() + r.len()) / 1024
-        ),
-        t,
-    );
-
-    // onnxruntime: a generated projection head (not a trained NetVLAD) on the mean ORB bits.
-    let t = Instant::now();
-    let mut pooled = vec![0f32; 256];
-    for d in &orb.descriptors {
-        for (bit, p) in pooled.iter_mut().enumerate() {
-            *p += ((d[bit / 8] >> (bit % 8)) & 1) as f32 / orb.descriptors.len().max(1) as f32;
+    let tty = std::io::stderr().is_terminal();
+    let multi = MultiProgress::new();
+    let style = ProgressStyle::with_template("{prefix:>3} {msg}").unwrap_or(ProgressStyle::default_bar());
+    let top = multi.add(ProgressBar::new_spinner().with_style(style.clone()).with_prefix(""));
+    let mut lines: Vec<ProgressBar> = Vec::new();
+    let mut last_print = Instant::now() - Duration::from_secs(60);
+    let mut progress = |s: &Snapshot| {
+        if let Some(note) = &s.note {
+            if tty {
+                let _ = multi.println(note);
+            } else {
+                eprintln!("demo: {note}");
+            }
         }
+        if tty {
+            top.set_message(header(s));
+            while lines.len() < s.robots.len() {
+                let r = &s.robots[lines.len()];
+                lines.push(multi.add(
+                    ProgressBar::new_spinner()
+                        .with_style(style.clone())
+                        .with_prefix(r.name.to_string()),
+                ));
+            }
+            for (bar, r) in lines.iter().zip(&s.robots) {
+                bar.set_message(robot_line(r));
+            }
+        } else if last_print.elapsed() >= Duration::from_secs(5) {
+            last_print = Instant::now();
+            eprintln!("demo: {}", header(s));
+            for r in &s.robots {
+                eprintln!("demo:   {} {}", r.name, robot_line(r));
+            }
+        }
+    };
+    eprintln!("doorslam demo: {} robots, report in {}", args.robots, out.display());
+    let summary = demo::run(&config, &mut progress)
+        .with_context(|| format!("demo (report folder {})", out.display()))?;
+    top.finish_and_clear();
+    for l in &lines {
+        l.finish();
     }
-    let w: Vec<f32> = (0..256 * 64)
-        .map(|i| ((i * 7919 % 251) as f32 / 125.0) - 1.0)
-        .collect();
-    let head = doorslam_place_recognition::onnx::projection_head(256, 64, &w, &[0.0; 64])
-        .context("building ONNX head")?;
-    let mut model =
-        doorslam_place_recognition::DescriptorModel::from_bytes(&head, "demo-projection-head")?;
-    let descriptor = model.describe(&pooled)?;
-    let norm = descriptor.iter().map(|v| v * v).sum::<f32>().sqrt();
-    step(
-        "onnxruntime",
-        format!("64-D descriptor from a generated projection head, |d| = {norm:.4}"),
-        t,
-    );
-
-    // Zenoh: the descriptor from robot a to robot b, two peers on loopback.
-    let t = Instant::now();
-    let port = std::net::TcpListener::bind("127.0.0.1:0")?
-        .local_addr()?
-        .port();
-    let endpoint = format!("tcp/127.0.0.1:{port}");
-    let link = |listen: Vec<String>, connect: Vec<String>| doorslam_team::LinkConfig {
-        listen,
-        connect,
-        multicast_scouting: false,
-    };
-    let a = doorslam_team::open_peer(&link(vec![endpoint.clone()], vec![]))?;
-    let b = doorslam_team::open_peer(&link(vec![], vec![endpoint]))?;
-    let key = doorslam_team::key_expr(
-        "demo",
-        &format!("b{}", std::process::id()),
-        "descriptor",
-        "a",
-    )?;
-    let sub = b
-        .declare_subscriber(&key)
-        .wait()
-        .map_err(|e| anyhow::anyhow!("zenoh subscriber: {e}"))?;
-    let bytes: Vec<u8> = descriptor.iter().flat_map(|v| v.to_le_bytes()).collect();
-    let deadline = Instant::now() + Duration::from_secs(10);
-    let got = loop {
-        a.put(&key, bytes.clone())
-            .wait()
-            .map_err(|e| anyhow::anyhow!("zenoh put: {e}"))?;
-        if let Some(s) = sub
-            .recv_timeout(Duration::from_millis(100))
-            .map_err(|e| anyhow::anyhow!("zenoh: {e}"))?
-        {
-            break s;
-        }
-        ensure!(
-            Instant::now() < deadline,
-            "zenoh: no message between loopback peers within 10 s"
+    if args.json {
+        println!("{}", serde_json::to_string(&summary)?);
+    } else {
+        println!(
+            "doorslam demo: {} robots; team ATE {} m (centralized oracle {} m); closures {} ({} true, {} false kept by PCM); {:.1} kB between robots; {:.0} s",
+            summary.robots,
+            summary.team_ate_m.map_or("—".into(), |v| format!("{v:.2}")),
+            summary.centralized_ate_m.map_or("—".into(), |v| format!("{v:.2}")),
+            summary.closures.total,
+            summary.closures.true_closures,
+            summary.closures.false_accepted,
+            summary.bandwidth.get("total_bytes").and_then(|v| v.as_u64()).unwrap_or(0) as f64 / 1e3,
+            summary.durations.total_s
         );
-    };
-    ensure!(
-        got.payload().to_bytes().as_ref() == bytes.as_slice(),
-        "zenoh: payload corrupted"
-    );
-    let _ = (a.close().wait(), b.close().wait());
-    step(
-        "zenoh",
-        format!("{} B descriptor between two peers on loopback", bytes.len()),
-        t,
-    );
-
-    // faer: a tridiagonal SPD system (a 1-D chain of poses), solved by sparse Cholesky.
-    let t = Instant::now();
-    let n = 1000;
-    let mut triplets = Vec::new();
-    for i in 0..n {
-        triplets.push((i, i, if i == 0 { 3.0 } else { 2.0 }));
-        if i > 0 {
-            triplets.push((i, i - 1, -1.0));
-        }
+        println!("report: {}", out.join("report.md").display());
     }
-    let a_mat = doorslam_backend::SparseCholesky::lower_from_triplets(n, &triplets)?;
-    let x = doorslam_backend::SparseCholesky::new().solve(&a_mat, &vec![1.0; n])?;
-    step(
-        "faer",
-        format!("{n}x{n} sparse SPD chain solved, x[0] = {:.3}", x[0]),
-        t,
-    );
-
-    // v4l2: what cameras this machine has (none in CI; the services then use replay).
-    let t = Instant::now();
-    let cams = doorslam_camera::enumerate_devices();
-    step("v4l", format!("{} v4l2 device(s) present", cams.len()), t);
-    println!("doorslam demo: all stack checks passed");
     Ok(())
 }

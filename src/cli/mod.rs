@@ -51,7 +51,7 @@ pub enum Command {
     Replay(replay::ReplayArgs),
     /// Measure what each inter-robot message kind costs in bytes.
     Bw(bw::BwArgs),
-    /// Run the demo (today: a check of the whole dependency stack on real data).
+    /// Run the demo: a team of drones, each a host of its own, building one map; a report.
     Demo(demo::DemoArgs),
     /// Measure the on-robot transports (iceoryx2, Zenoh shared memory, Unix socket).
     Bench(bench::BenchArgs),

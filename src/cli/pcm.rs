@@ -3,11 +3,11 @@
 use std::collections::BTreeSet;
 use std::path::PathBuf;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use clap::Args;
 use doorslam_backend::outliers::{Pcm, Scope};
 use doorslam_backend::{
-    key, read_g2o_with, write_g2o, EdgeClass, Graph, InformationCheck, PoseGraph, ReadOptions,
+    key, write_g2o, EdgeClass, Graph, PoseGraph, ReadOptions,
     UnknownTags,
 };
 use nalgebra::Isometry3;
@@ -69,47 +69,15 @@ pub(super) fn merge_files(
     } else {
         UnknownTags::Error
     };
-    let mut merged = PoseGraph::new();
-    let mut seen_edges = BTreeSet::new();
-    for path in files {
-        let file = read_g2o_with(
-            path,
-            ReadOptions {
-                unknown,
-                information: information.into(),
-            },
-        )?;
-        for w in &file.warnings {
-            tracing::warn!("{w}");
-        }
-        let Graph::Se3(g) = file.graph else {
-            bail!("{}: PCM needs a 3-D graph (EDGE_SE3:QUAT)", path.display());
-        };
-        for (idx, (&k, p)) in g.keys().iter().zip(g.poses()).enumerate() {
-            if file.has_vertex[idx] || merged.index_of(k).is_none() {
-                merged.add_pose(k, *p);
-            }
-        }
-        // The reader checked every matrix under the chosen policy; as-is ones stay as-is.
-        let check = match information {
-            InformationArg::AsIs => InformationCheck::AsIs,
-            _ => InformationCheck::PositiveDefinite,
-        };
-        for e in g.edges() {
-            let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
-            let q = e.measured.rotation.coords;
-            let t = e.measured.translation.vector;
-            let id = (a, b, [t.x, t.y, t.z, q.x, q.y, q.z, q.w].map(f64::to_bits));
-            if seen_edges.insert(id) {
-                let (i, j) = (
-                    merged.index_of(a).unwrap_or_default(),
-                    merged.index_of(b).unwrap_or_default(),
-                );
-                merged
-                    .add_edge_with(i, j, e.measured, e.information, check)
-                    .with_context(|| format!("merging {}", path.display()))?;
-            }
-        }
+    let (merged, warnings) = doorslam_backend::g2o::merge_g2o_files(
+        files,
+        ReadOptions {
+            unknown,
+            information: information.into(),
+        },
+    )?;
+    for w in &warnings {
+        tracing::warn!("{w}");
     }
     Ok(merged)
 }

@@ -525,22 +525,82 @@ pub fn write_g2o(graph: &Graph, path: &Path) -> Result<(), GraphError> {
         }
         Graph::Se3(g) => {
             for (k, p) in g.keys().iter().zip(g.poses()) {
-                writeln!(w, "VERTEX_SE3:QUAT {k} {}", join(&pose7(p))).map_err(io)?;
+                writeln!(w, "{}", se3_vertex_line(*k, p)).map_err(io)?;
             }
             for e in g.edges() {
-                let info = upper_triangle(&e.information, 6, &SE3_ORDER);
                 let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
-                writeln!(
-                    w,
-                    "EDGE_SE3:QUAT {a} {b} {} {}",
-                    join(&pose7(&e.measured)),
-                    join(&info)
-                )
-                .map_err(io)?;
+                writeln!(w, "{}", se3_edge_line(a, b, &e.measured, &e.information))
+                    .map_err(io)?;
             }
         }
     }
     w.flush().map_err(io)
+}
+
+/// A `VERTEX_SE3:QUAT` line (no newline).
+pub fn se3_vertex_line(k: u64, p: &Isometry3<f64>) -> String {
+    format!("VERTEX_SE3:QUAT {k} {}", join(&pose7(p)))
+}
+
+/// An `EDGE_SE3:QUAT` line (no newline): `z ≈ X_a⁻¹ X_b`, information given rotation-first
+/// (the solver's order) and written in g2o's translation-first order.
+pub fn se3_edge_line(a: u64, b: u64, z: &Isometry3<f64>, information: &TangentMatrix) -> String {
+    let info = upper_triangle(information, 6, &SE3_ORDER);
+    format!("EDGE_SE3:QUAT {a} {b} {} {}", join(&pose7(z)), join(&info))
+}
+
+/// Several 3-D g2o files (one per robot, with multi-robot keys) as one team graph: a pose
+/// takes the first file's `VERTEX` line that has one (else it is chained from edges), and
+/// an edge found in several files with the same keys and the same measurement bits (an
+/// inter-robot closure both robots wrote) is kept once.
+pub fn merge_g2o_files(
+    files: &[std::path::PathBuf],
+    options: ReadOptions,
+) -> Result<(PoseGraph<Isometry3<f64>>, Vec<String>), GraphError> {
+    let mut merged = PoseGraph::new();
+    let mut warnings = Vec::new();
+    let mut seen_edges = std::collections::BTreeSet::new();
+    let check = match options.information {
+        InformationPolicy::AsIs => InformationCheck::AsIs,
+        _ => InformationCheck::PositiveDefinite,
+    };
+    for path in files {
+        let file = read_g2o_with(path, options)?;
+        warnings.extend(file.warnings);
+        let Graph::Se3(g) = file.graph else {
+            return Err(GraphError::Parse {
+                file: path.display().to_string(),
+                line: 0,
+                msg: "a team graph needs 3-D poses (VERTEX_SE3:QUAT / EDGE_SE3:QUAT)".into(),
+            });
+        };
+        for (idx, (&k, p)) in g.keys().iter().zip(g.poses()).enumerate() {
+            if file.has_vertex[idx] || merged.index_of(k).is_none() {
+                merged.add_pose(k, *p);
+            }
+        }
+        for e in g.edges() {
+            let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
+            let q = e.measured.rotation.coords;
+            let t = e.measured.translation.vector;
+            let id = (a, b, [t.x, t.y, t.z, q.x, q.y, q.z, q.w].map(f64::to_bits));
+            if seen_edges.insert(id) {
+                let (i, j) = (
+                    merged.index_of(a).unwrap_or_default(),
+                    merged.index_of(b).unwrap_or_default(),
+                );
+                // The reader checked every matrix under the chosen policy.
+                merged
+                    .add_edge_with(i, j, e.measured, e.information, check)
+                    .map_err(|err| GraphError::Parse {
+                        file: path.display().to_string(),
+                        line: 0,
+                        msg: format!("merging edge {a} -> {b}: {err}"),
+                    })?;
+            }
+        }
+    }
+    Ok((merged, warnings))
 }
 
 fn pose7(p: &Isometry3<f64>) -> [f64; 7] {

@@ -63,6 +63,13 @@ pub struct ReplayConfig {
     /// Stepped playback: one frame per line read on standard input (end of input stops).
     #[serde(default)]
     pub step: bool,
+    /// Wall-clock start of the recording (Unix milliseconds): frame k is due at this time
+    /// plus its dataset time divided by `rate`, whenever the replay starts. A replay
+    /// (re)started late skips the frames whose time has passed, like a camera that was
+    /// off: several robots' replays stay on one clock, and a robot restarted mid-run
+    /// resumes where the flight is now. Absent: play from the first frame at start.
+    #[serde(default)]
+    pub start_unix_ms: Option<u64>,
 }
 
 fn default_rate() -> f64 {

@@ -14,6 +14,22 @@ use crate::{CameraError, ReplayConfig};
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct ReplayReport {
     pub published: u64,
+    /// Frames whose time had passed when the replay (re)started (`start_unix_ms`).
+    pub skipped: u64,
+}
+
+/// The local instant of a wall-clock time in Unix milliseconds (past or future).
+fn instant_of_unix_ms(unix_ms: u64) -> Instant {
+    let now_ms = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64);
+    let now = Instant::now();
+    if unix_ms <= now_ms {
+        now.checked_sub(Duration::from_millis(now_ms - unix_ms))
+            .unwrap_or(now)
+    } else {
+        now + Duration::from_millis(unix_ms - now_ms)
+    }
 }
 
 /// Plays the dataset once, then returns.
@@ -45,7 +61,16 @@ pub fn run(
         );
     }
     lifecycle.ready(&format!("replaying {}", config.path.display()));
-    let start = Instant::now();
+    let clocked = config.start_unix_ms.is_some() && config.rate > 0.0 && !config.step;
+    let start = match config.start_unix_ms {
+        Some(ms) if clocked => instant_of_unix_ms(ms),
+        _ => Instant::now(),
+    };
+    // A frame more than this late is skipped on a shared clock (the camera was off).
+    let period = match dataset.frames.as_slice() {
+        [a, b, ..] => Duration::from_nanos(b.stamp_ns.saturating_sub(a.stamp_ns)),
+        _ => Duration::ZERO,
+    };
     let t0 = dataset.frames.first().map_or(0, |f| f.stamp_ns);
     let mut report = ReplayReport::default();
     for k in 0..dataset.len() {
@@ -72,7 +97,12 @@ pub fn run(
                 f.stamp_ns.saturating_sub(t0) as f64 * 1e-9 / config.rate,
             )
             .unwrap_or(Duration::MAX);
-            if let Some(wait) = due.checked_sub(start.elapsed()) {
+            let now = Instant::now().saturating_duration_since(start);
+            if clocked && now > due.saturating_add(period.mul_f64(1.0 / config.rate)) {
+                report.skipped += 1;
+                continue;
+            }
+            if let Some(wait) = due.checked_sub(now) {
                 std::thread::sleep(wait);
             }
         }
@@ -82,7 +112,9 @@ pub fn run(
             .as_ref()
             .map(|t| doorslam_geometry::pose_to_array(&t[k]));
         let header = FrameHeader {
-            seq: report.published,
+            // The dataset index: strictly increasing, and on a shared clock a restarted
+            // replay continues the numbering of the frames it skipped.
+            seq: k as u64,
             stamp_ns: f.stamp_ns,
             robot: robot_index,
             camera: 0,
@@ -94,6 +126,12 @@ pub fn run(
         };
         sender.send_with(|slot| StereoFrame::write(slot, header, &pair.left, &pair.right))?;
         report.published += 1;
+    }
+    if report.skipped > 0 {
+        tracing::warn!(
+            skipped = report.skipped,
+            "replay: frames whose time had passed on the shared clock were skipped"
+        );
     }
     tracing::info!(
         published = report.published,

@@ -158,6 +158,33 @@ impl Ledger {
         }
     }
 
+    /// A ledger that continues `file` (this robot's, written before a restart) in a new
+    /// epoch: every byte counted before the restart stays counted. Rendezvous indices
+    /// restart at 0 with the new link's sessions, so a meeting after the restart adds to
+    /// the first meeting's rows (totals per kind and peer stay exact).
+    pub fn resume(file: LedgerFile, epoch: u64) -> Self {
+        let mut ledger = Self::new(&file.robot, &file.team, epoch, file.raw_image_bytes);
+        ledger.framing_bytes = file.framing.overhead_bytes_per_message;
+        for t in file.traffic {
+            ledger
+                .traffic
+                .insert((t.peer, t.rendezvous, t.direction, t.kind), t.counts);
+        }
+        for d in file.dropped {
+            ledger
+                .dropped
+                .insert((d.peer, d.reason), (d.messages, d.bytes));
+        }
+        ledger.rendezvous = file.rendezvous;
+        // A meeting open when the robot died ended then.
+        for r in &mut ledger.rendezvous {
+            if r.local_end_ms.is_none() {
+                r.local_end_ms = Some(r.local_start_ms);
+            }
+        }
+        ledger
+    }
+
     /// Counts one message sent or received (`resend`: a resend of an unacknowledged one).
     #[allow(clippy::too_many_arguments)]
     pub fn record(

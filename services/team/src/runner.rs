@@ -454,12 +454,38 @@ pub fn run_robot(
         source,
     })?;
     let mut epoch = next_epoch(&dir)?;
-    let ledger = LedgerHandle::new(Ledger::new(
-        robot,
-        &section.name,
-        epoch,
-        section.raw_image_width * section.raw_image_height,
-    ));
+    // A restarted link continues its ledger: every byte of the run stays counted.
+    let previous = dir.join("ledger.json");
+    let ledger = match previous
+        .is_file()
+        .then(|| crate::ledger::LedgerFile::read(&previous))
+    {
+        Some(Ok(file)) if file.robot == robot && file.team == section.name => {
+            tracing::info!(ledger = %previous.display(), "team: continuing the ledger of the previous start");
+            Ledger::resume(file, epoch)
+        }
+        Some(Ok(_)) | None => Ledger::new(
+            robot,
+            &section.name,
+            epoch,
+            section.raw_image_width * section.raw_image_height,
+        ),
+        Some(Err(e)) => {
+            let aside = dir.join(format!("ledger.json.unreadable-{epoch}"));
+            tracing::error!("team: {e}; kept as {} and starting a new ledger", aside.display());
+            std::fs::rename(&previous, &aside).map_err(|source| RunError::Io {
+                path: previous.clone(),
+                source,
+            })?;
+            Ledger::new(
+                robot,
+                &section.name,
+                epoch,
+                section.raw_image_width * section.raw_image_height,
+            )
+        }
+    };
+    let ledger = LedgerHandle::new(ledger);
     let config = ProtocolConfig {
         retransmit_ms: section.retransmit_ms,
         ..ProtocolConfig::default()

@@ -5,6 +5,11 @@
 //!   TUM format (`stamp_s x y z qx qy qz qw`, stamps from the keyframes);
 //! - `team_estimate.tum`: the distributed back-end's estimate of this robot's keyframes,
 //!   in the team's frame (the lowest robot's first keyframe) once anchored, TUM format;
+//! - `keyframes.csv`: `id,stamp_ns` of every keyframe (keys ↔ times, e.g. for ground truth);
+//! - `graph.g2o`: this robot's keyframes (odometry poses), odometry edges and the
+//!   inter-robot closures it took (before PCM), multi-robot keys: the robots' files merged
+//!   (`doorslam pcm a/graph.g2o b/graph.g2o ...`) are the team's graph, for a centralized
+//!   reference;
 //! - `backend.json`: counters ([`BackendReport`]), the relay's and the agent's, closures
 //!   rejected by PCM, present peers, whether the team estimate converged.
 //!
@@ -17,6 +22,7 @@ use doorslam_geometry::{key, SE3};
 use serde::Serialize;
 
 use super::state::{BackendReport, BackendState};
+use crate::g2o::{se3_edge_line, se3_vertex_line};
 use super::team::BridgeStats;
 use super::ServiceError;
 
@@ -180,6 +186,11 @@ impl Outputs {
             tum_line(&mut odometry, *stamp, pose);
         }
         self.write_file("odometry.tum", &odometry)?;
+        let mut ids = String::from("id,stamp_ns\n");
+        for (id, (stamp, _)) in received {
+            let _ = writeln!(ids, "{id},{stamp}");
+        }
+        self.write_file("keyframes.csv", &ids)?;
         if let Some(bridge) = state.team() {
             let mut team = String::new();
             for (k, pose) in bridge.estimate() {
@@ -189,6 +200,28 @@ impl Outputs {
             }
             self.write_file("team_estimate.tum", &team)?;
         }
+        let mut g2o = String::new();
+        let keys = state.graph().keys();
+        for (id, (_, pose)) in received {
+            if let Ok(k) = key::symbol(state.robot(), *id) {
+                let _ = writeln!(g2o, "{}", se3_vertex_line(k, pose));
+            }
+        }
+        for e in state.graph().edges() {
+            let _ = writeln!(
+                g2o,
+                "{}",
+                se3_edge_line(keys[e.i], keys[e.j], &e.measured, &e.information)
+            );
+        }
+        for c in state.closures() {
+            let _ = writeln!(
+                g2o,
+                "{}",
+                se3_edge_line(c.key_a, c.key_b, &c.relative, &c.information)
+            );
+        }
+        self.write_file("graph.g2o", &g2o)?;
         let json = serde_json::to_string_pretty(&Self::status(state)).map_err(|e| {
             ServiceError::Output {
                 path: self.dir.join("backend.json"),

@@ -97,8 +97,9 @@ pub struct BackendState {
     /// Odometry edges in the graph, by (from, to) keyframe id.
     odometry: HashSet<(u64, u64)>,
     pending: VecDeque<OdometryInput>,
-    /// Inter-robot closures in the graph, by (key, key) both ways.
+    /// Inter-robot closures in the graph, by (key, key) both ways, and as received.
     closures: HashSet<(u64, u64)>,
+    closure_list: Vec<ClosureInput>,
     /// Closures whose keyframe of this robot has not arrived yet.
     pending_closures: VecDeque<ClosureInput>,
     /// Keyframe id → (stamp, pose as received): the odometry alone, for comparison.
@@ -123,6 +124,7 @@ impl BackendState {
             odometry: HashSet::new(),
             pending: VecDeque::new(),
             closures: HashSet::new(),
+            closure_list: Vec::new(),
             pending_closures: VecDeque::new(),
             received: BTreeMap::new(),
             since_optimized: 0,
@@ -151,11 +153,20 @@ impl BackendState {
         &self.received
     }
 
+    /// The inter-robot closures taken (before the distributed back-end's PCM).
+    pub fn closures(&self) -> &[ClosureInput] {
+        &self.closure_list
+    }
+
     /// Closures waiting for a keyframe of this robot.
     pub fn pending_closures(&self) -> usize {
         self.pending_closures.len()
     }
 
+    /// This robot's key letter number (0 = 'a').
+    pub fn robot(&self) -> u8 {
+        self.robot
+    }
     pub fn graph(&self) -> &PoseGraph<SE3> {
         &self.graph
     }
@@ -440,6 +451,7 @@ impl BackendState {
     fn insert_closure(&mut self, c: ClosureInput) {
         self.closures.insert((c.key_a, c.key_b));
         self.closures.insert((c.key_b, c.key_a));
+        self.closure_list.push(c.clone());
         if let Some(team) = self.team.as_mut() {
             if let Err(e) = team.add_closure(c.key_a, c.key_b, c.relative, c.information) {
                 self.report.team_refused += 1;

@@ -1,0 +1,370 @@
+//! The demo's settings, its world (rendered flights or a split dataset) and the robots'
+//! configuration files.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use crate::flights::{
+    camera_for_resolution, robot_name, simulate_team, write_team, FlightConfig, RangeEvent,
+};
+
+use super::{io_err, DemoError};
+
+/// Kill one robot's processes mid-run (`--kill ROBOT@SECONDS`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Kill {
+    pub robot: usize,
+    /// Flight time (seconds) of the kill.
+    pub at_s: f64,
+}
+
+impl std::str::FromStr for Kill {
+    type Err = String;
+    /// `b@12.5`: robot letter (or number) and flight seconds.
+    fn from_str(s: &str) -> Result<Self, String> {
+        let (robot, at) = s
+            .split_once('@')
+            .ok_or_else(|| format!("{s:?}: expected ROBOT@SECONDS, e.g. b@15"))?;
+        let robot = match robot.as_bytes() {
+            [c @ b'a'..=b'z'] => usize::from(c - b'a'),
+            _ => robot
+                .parse()
+                .map_err(|_| format!("{s:?}: robot {robot:?} is neither a letter nor a number"))?,
+        };
+        let at_s: f64 = at
+            .parse()
+            .map_err(|_| format!("{s:?}: {at:?} is not a number of seconds"))?;
+        if !(at_s.is_finite() && at_s >= 0.0) {
+            return Err(format!("{s:?}: seconds must be >= 0"));
+        }
+        Ok(Kill { robot, at_s })
+    }
+}
+
+/// What to run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DemoConfig {
+    /// The `doorslam` binary every robot runs.
+    pub exe: PathBuf,
+    /// The report folder (must not exist, or be empty).
+    pub out: PathBuf,
+    pub robots: usize,
+    /// Frames per robot (rendered flights); with `dataset`, all its frames are used.
+    pub frames: usize,
+    /// A KITTI-layout folder split into `robots` consecutive parts instead of the town.
+    pub dataset: Option<PathBuf>,
+    pub kill: Option<Kill>,
+    /// Seconds between a kill and the restart.
+    pub restart_after_s: f64,
+    /// Replay speed (1 = real time).
+    pub rate: f64,
+    /// Seed of the town and the flights.
+    pub seed: u64,
+    /// Seconds the robots get to open their services before the flight's clock starts.
+    pub startup_s: f64,
+    /// Most seconds to wait at base for the team estimate to settle.
+    pub settle_s: f64,
+    /// Robots' realistic camera (noise, exposure changes, blur) when rendering.
+    pub realistic_camera: bool,
+    /// Loopback mode (not root): robot r listens on `base_port + r`.
+    pub base_port: u16,
+    /// Extra lines appended to every robot's `robot.toml` (e.g. `[rendezvous]` settings).
+    pub robot_toml_extra: String,
+}
+
+impl DemoConfig {
+    /// The defaults of `doorslam demo` for `exe` and `out`.
+    pub fn new(exe: PathBuf, out: PathBuf) -> Self {
+        Self {
+            exe,
+            out,
+            robots: 3,
+            frames: 300,
+            dataset: None,
+            kill: None,
+            restart_after_s: 3.0,
+            rate: 1.0,
+            seed: 1,
+            startup_s: 6.0,
+            settle_s: 30.0,
+            realistic_camera: true,
+            base_port: 17_447,
+            robot_toml_extra: String::new(),
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), DemoError> {
+        let bad = |m: String| Err(DemoError::Config(m));
+        if !(1..=crate::flights::MAX_ROBOTS).contains(&self.robots) {
+            return bad(format!("robots = {}: from 1 to 26", self.robots));
+        }
+        if self.frames < 10 {
+            return bad(format!("frames = {}: at least 10", self.frames));
+        }
+        if let Some(k) = self.kill {
+            if k.robot >= self.robots {
+                return bad(format!(
+                    "kill: robot {} is not in a team of {}",
+                    robot_name(k.robot),
+                    self.robots
+                ));
+            }
+        }
+        for (name, v, max) in [
+            ("rate", self.rate, 100.0),
+            ("startup_s", self.startup_s, 600.0),
+            ("settle_s", self.settle_s, 3600.0),
+            ("restart_after_s", self.restart_after_s, 600.0),
+        ] {
+            if !(v.is_finite() && v >= 0.0 && v <= max) {
+                return bad(format!("{name} = {v}: from 0 to {max}"));
+            }
+        }
+        if self.rate == 0.0 {
+            return bad("rate = 0: the demo replays on a clock (use a positive speed)".into());
+        }
+        if !self.exe.is_file() {
+            return bad(format!("{}: the doorslam binary is not there", self.exe.display()));
+        }
+        Ok(())
+    }
+}
+
+/// Milliseconds since the Unix epoch.
+pub fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// Creates the report folder, refusing one that holds anything (a demo never mixes runs).
+pub fn prepare_out(out: &Path) -> Result<(), DemoError> {
+    if out.exists() {
+        let mut entries = std::fs::read_dir(out).map_err(io_err(out))?;
+        if entries.next().is_some() {
+            return Err(DemoError::Config(format!(
+                "{} is not empty: give --out a new folder",
+                out.display()
+            )));
+        }
+    }
+    std::fs::create_dir_all(out).map_err(io_err(out))
+}
+
+/// Where each robot's frames and ground truth come from.
+#[derive(Debug, Clone)]
+pub struct World {
+    /// Per robot: the folder its camera replays, and `[k, n]` when it plays part of it.
+    pub sources: Vec<(PathBuf, Option<[usize; 2]>)>,
+    /// Per robot: ground truth (KITTI poses, times) of the whole folder it replays.
+    pub truth: Vec<(PathBuf, PathBuf)>,
+    /// Radio range changes, in time order.
+    pub events: Vec<RangeEvent>,
+    /// The simulator's closure candidates (`closures.csv`), when rendered.
+    pub closures_csv: Option<PathBuf>,
+    pub frames: usize,
+    pub rate_hz: f64,
+    /// Frames per robot (the split parts may differ by one).
+    pub robot_frames: Vec<usize>,
+}
+
+impl World {
+    pub fn robots(&self) -> usize {
+        self.sources.len()
+    }
+
+    /// Flight time of the longest robot, seconds.
+    pub fn duration_s(&self) -> f64 {
+        self.robot_frames.iter().copied().max().unwrap_or(0) as f64 / self.rate_hz
+    }
+
+    /// Renders the town's flights into `<out>/world`, or splits the dataset.
+    pub fn prepare(
+        config: &DemoConfig,
+        progress: &mut dyn FnMut(usize, usize),
+    ) -> Result<World, DemoError> {
+        match &config.dataset {
+            Some(dir) => Self::split(dir, config.robots),
+            None => Self::render(config, progress),
+        }
+    }
+
+    fn render(
+        config: &DemoConfig,
+        progress: &mut dyn FnMut(usize, usize),
+    ) -> Result<World, DemoError> {
+        let dir = config.out.join("world");
+        let camera = camera_for_resolution("euroc")?;
+        let flight = FlightConfig {
+            robots: config.robots,
+            frames: config.frames,
+            seed: config.seed,
+            ..FlightConfig::default()
+        };
+        let world = crate::World::town(config.seed);
+        let team = simulate_team(&world, &camera, &flight)?;
+        // Rendering runs on rayon's threads: they count, this thread reports.
+        let done = std::sync::atomic::AtomicUsize::new(0);
+        let total = config.robots * config.frames;
+        let count = |d: usize, _: usize| {
+            done.fetch_max(d, std::sync::atomic::Ordering::Relaxed);
+        };
+        std::thread::scope(|s| {
+            let worker = s.spawn(|| write_team(&dir, &world, &team, &count));
+            while !worker.is_finished() {
+                progress(done.load(std::sync::atomic::Ordering::Relaxed), total);
+                std::thread::sleep(std::time::Duration::from_millis(200));
+            }
+            worker
+                .join()
+                .unwrap_or_else(|_| Err(crate::flights::FlightError::Io {
+                    path: dir.clone(),
+                    source: std::io::Error::other("the rendering thread panicked"),
+                }))
+        })?;
+        progress(total, total);
+        let n = config.robots;
+        let per_robot = |r: usize| dir.join(robot_name(r).to_string());
+        Ok(World {
+            sources: (0..n).map(|r| (per_robot(r), None)).collect(),
+            truth: (0..n)
+                .map(|r| (per_robot(r).join("poses.txt"), per_robot(r).join("times.txt")))
+                .collect(),
+            events: team.events.clone(),
+            closures_csv: Some(dir.join("closures.csv")),
+            frames: config.frames,
+            rate_hz: flight.rate_hz,
+            robot_frames: vec![config.frames; n],
+        })
+    }
+
+    fn split(dir: &Path, robots: usize) -> Result<World, DemoError> {
+        let fail = |reason: String| DemoError::Io {
+            path: dir.to_path_buf(),
+            reason,
+        };
+        let poses = dir.join("poses.txt");
+        let times = dir.join("times.txt");
+        if !poses.is_file() {
+            return Err(fail(
+                "no poses.txt: the demo needs ground truth to report errors".into(),
+            ));
+        }
+        let text = std::fs::read_to_string(&times).map_err(io_err(&times))?;
+        let stamps: Vec<f64> = text
+            .split_whitespace()
+            .map(|t| t.parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|e| DemoError::Io {
+                path: times.clone(),
+                reason: format!("not a list of seconds: {e}"),
+            })?;
+        let frames = stamps.len();
+        if frames < 10 * robots {
+            return Err(fail(format!(
+                "{frames} frames: too few for {robots} robots (at least 10 each)"
+            )));
+        }
+        let span = stamps.last().copied().unwrap_or(0.0) - stamps[0];
+        let rate_hz = if span > 0.0 {
+            (frames - 1) as f64 / span
+        } else {
+            10.0
+        };
+        // The replay's split: part k holds frames [k n / parts, (k + 1) n / parts).
+        let robot_frames = (0..robots)
+            .map(|k| (k + 1) * frames / robots - k * frames / robots)
+            .collect();
+        Ok(World {
+            sources: (0..robots).map(|r| (dir.to_path_buf(), Some([r, robots]))).collect(),
+            truth: vec![(poses, times); robots],
+            events: Vec::new(),
+            closures_csv: None,
+            frames,
+            rate_hz,
+            robot_frames,
+        })
+    }
+}
+
+/// The `robot.toml` of robot `r`.
+pub fn robot_toml(
+    config: &DemoConfig,
+    world: &World,
+    r: usize,
+    addresses: &[String],
+    start_unix_ms: u64,
+    netns: bool,
+) -> String {
+    let out = config.out.display();
+    let (path, split) = &world.sources[r];
+    let mut t = String::new();
+    let _ = write!(
+        t,
+        r#"# doorslam demo: robot {name} (written by `doorslam demo`)
+[robot]
+id = "{name}"
+index = {r}
+
+[camera]
+source = "replay"
+
+[camera.replay]
+path = "{path}"
+rate = {rate}
+wait_for_subscribers_s = 30.0
+start_unix_ms = {start_unix_ms}
+"#,
+        name = robot_name(r),
+        path = path.display(),
+        rate = config.rate,
+    );
+    if let Some([k, n]) = split {
+        let _ = writeln!(t, "split = [{k}, {n}]");
+    }
+    let _ = write!(
+        t,
+        r#"
+[backend]
+state_dir = "{out}"
+optimize_every = 10
+distributed = true
+write_every_s = 0.5
+
+[team]
+name = "demo{pid}"
+listen = ["{listen}"]
+"#,
+        pid = std::process::id(),
+        listen = addresses[r],
+    );
+    if netns {
+        // Peers are found on the shared radio LAN: no robot list.
+        t.push_str("connect = []\nmulticast_scouting = true\n");
+    } else {
+        let others: Vec<String> = addresses
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| *i != r)
+            .map(|(_, a)| format!("{a:?}"))
+            .collect();
+        let _ = writeln!(
+            t,
+            "# loopback (not root): no multicast between test robots, peers listed\nconnect = [{}]\nmulticast_scouting = false",
+            others.join(", ")
+        );
+    }
+    let _ = write!(
+        t,
+        r#"lease_ms = 3000
+run_dir = "{out}"
+retransmit_ms = 500
+write_every_ms = 500
+
+[up]
+services = ["backend", "frontend", "place-recognition", "team", "camera"]
+"#
+    );
+    t.push_str(&config.robot_toml_extra);
+    t
+}

@@ -1,0 +1,340 @@
+//! `doorslam demo`: a team of robots flying through the synthetic town (or a dataset split
+//! into robots), each robot a host of its own running its full set of services, and a
+//! report people can look at.
+//!
+//! What happens, in order:
+//! 1. **World**: the team's flights are planned and rendered into `<out>/world/` (one
+//!    KITTI-layout sequence per robot, `events.csv` of who is in radio range when,
+//!    `closures.csv` of true overlaps and aliased look-alikes); with `dataset`, the
+//!    dataset is split into consecutive parts instead (its images are not copied).
+//! 2. **Network**: as root, every robot gets a network namespace with its own address on
+//!    a shared bridge ([`crate::netns`]); radio range follows `events.csv` (a pair out of
+//!    range drops each other's packets). Not root: every robot on the loopback with
+//!    explicit peer lists and no range changes (said in the log and the report).
+//! 3. **Robots**: `doorslam up` per robot (camera replay → frontend → place-recognition →
+//!    backend, and team), its configuration in `<out>/<robot>/robot.toml`, its logs in
+//!    `<out>/<robot>/robot.log`. All replays share one clock (`start_unix_ms`), so a robot
+//!    restarted after `kill` resumes where the flight is.
+//! 4. **Flight**: range events and the kill/restart are applied on time; every robot's
+//!    status is sampled for the progress lines and the bytes-over-time plot.
+//! 5. **Back at base**: after the flight every pair is put in range (the drones landed
+//!    together) until every robot's distributed back-end has converged (or `settle_s`).
+//! 6. **Report** ([`report`]): `report.md`, `summary.json`, plots as PNG and SVG.
+//!
+//! Nothing here stands in for a service: if one is missing, its process fails, `up`
+//! gives up on it and the demo stops naming it.
+
+pub mod config;
+pub mod plots;
+pub mod report;
+pub mod robot;
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use crate::flights::{FlightError, RangeEventKind};
+use crate::netns::{NetError, Net};
+
+pub use config::{DemoConfig, Kill};
+pub use robot::{RobotSnapshot, RobotState};
+
+/// Failures of the demo; each says which piece or file.
+#[derive(Debug, thiserror::Error)]
+pub enum DemoError {
+    #[error("demo config: {0}")]
+    Config(String),
+    #[error("{path}: {reason}")]
+    Io { path: PathBuf, reason: String },
+    #[error(transparent)]
+    Flight(#[from] FlightError),
+    #[error(transparent)]
+    Net(#[from] NetError),
+    #[error("robot {robot}: {reason} (its log: {log})")]
+    Robot {
+        robot: char,
+        reason: String,
+        log: PathBuf,
+    },
+    #[error("report: {0}")]
+    Report(String),
+}
+
+pub(crate) fn io_err(path: &Path) -> impl Fn(std::io::Error) -> DemoError + '_ {
+    move |e| DemoError::Io {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    }
+}
+
+/// Where the run is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Phase {
+    Rendering,
+    Starting,
+    Flying,
+    AtBase,
+    Stopping,
+    Reporting,
+}
+
+/// What a person watching sees, a few times per second.
+#[derive(Debug, Clone)]
+pub struct Snapshot {
+    pub phase: Phase,
+    /// Seconds of flight time (simulation time), once flying.
+    pub flight_s: f64,
+    pub flight_total_s: f64,
+    /// Rendered frames while rendering.
+    pub rendered: (usize, usize),
+    pub robots: Vec<RobotSnapshot>,
+    /// Something worth a line of its own (a range change, a kill).
+    pub note: Option<String>,
+}
+
+/// One entry of the rendezvous timeline.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct TimelineEvent {
+    /// Flight time in seconds.
+    pub t_s: f64,
+    pub event: String,
+    pub robots: Vec<String>,
+}
+
+/// What the run measured while it ran (the report adds the rest from the files).
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct RunLog {
+    pub mode: String,
+    pub render_s: f64,
+    pub flight_s: f64,
+    pub settle_s: f64,
+    pub converged_at_base: bool,
+    /// Flight time, then bytes sent so far per robot (ledger), sampled once a second.
+    pub bytes_over_time: Vec<(f64, Vec<u64>)>,
+    pub timeline: Vec<TimelineEvent>,
+    /// CPU seconds of every robot process together (user + system).
+    pub robots_cpu_s: f64,
+    /// Times each robot's processes were started.
+    pub starts: Vec<u32>,
+}
+
+fn letter(r: usize) -> char {
+    crate::flights::robot_name(r)
+}
+
+/// Runs the demo; `progress` is called a few times per second.
+pub fn run(
+    config: &DemoConfig,
+    progress: &mut dyn FnMut(&Snapshot),
+) -> Result<report::Summary, DemoError> {
+    config.validate()?;
+    let out = &config.out;
+    config::prepare_out(out)?;
+    let mut log = RunLog::default();
+    let mut snap = Snapshot {
+        phase: Phase::Rendering,
+        flight_s: 0.0,
+        flight_total_s: 0.0,
+        rendered: (0, 0),
+        robots: Vec::new(),
+        note: None,
+    };
+
+    // 1. The world.
+    let t = Instant::now();
+    let world = config::World::prepare(config, &mut |done, total| {
+        snap.rendered = (done, total);
+        progress(&snap);
+    })?;
+    log.render_s = t.elapsed().as_secs_f64();
+    let n = world.robots();
+
+    // 2. The network.
+    let net = if crate::netns::is_root() {
+        log.mode = "netns".into();
+        Some(Net::new("dm", n, [213, 9])?)
+    } else {
+        log.mode = "loopback".into();
+        snap.note = Some(
+            "not root: every robot on the loopback, always in range (no network namespaces, \
+             no radio-range cuts)"
+                .into(),
+        );
+        progress(&snap);
+        None
+    };
+    let addresses: Vec<String> = (0..n)
+        .map(|i| match &net {
+            Some(net) => format!("tcp/{}:7447", net.addr(i)),
+            None => format!("tcp/127.0.0.1:{}", config.base_port + i as u16),
+        })
+        .collect();
+
+    // 3. The robots, on one clock that starts once they had time to open their services.
+    let start_unix_ms = config::unix_ms() + (config.startup_s * 1e3) as u64;
+    let mut robots = Vec::with_capacity(n);
+    for r in 0..n {
+        let text = config::robot_toml(config, &world, r, &addresses, start_unix_ms, net.is_some());
+        robots.push(robot::Robot::create(out, r, &text)?);
+    }
+    snap.phase = Phase::Starting;
+    for robot in &mut robots {
+        robot.start(&config.exe, net.as_ref())?;
+    }
+
+    // Range at the start: pairs not in range yet are cut.
+    let mut in_range = vec![vec![net.is_none(); n]; n];
+    if let Some(net) = &net {
+        for a in 0..n {
+            for b in a + 1..n {
+                net.cut(a, b)?;
+            }
+        }
+    }
+    let flight_total_s = world.duration_s();
+    snap.flight_total_s = flight_total_s;
+    let clock_start = Instant::now() + Duration::from_secs_f64(config.startup_s);
+    let flight_time = |now: Instant| {
+        now.saturating_duration_since(clock_start).as_secs_f64() * config.rate
+    };
+    let mut events = world.events.iter().peekable();
+    let mut killed_at: Option<Instant> = None;
+    let mut restarted = false;
+    let mut last_sample = Instant::now() - Duration::from_secs(1);
+    let t_flight = Instant::now();
+    snap.phase = Phase::Flying;
+
+    // 4. The flight.
+    loop {
+        let now = Instant::now();
+        let ft = flight_time(now);
+        snap.note = None;
+        while let Some(e) = events.next_if(|e| e.time_s <= ft) {
+            let (a, b) = (e.robot_a, e.robot_b);
+            let enter = e.kind == RangeEventKind::Enter;
+            in_range[a][b] = enter;
+            in_range[b][a] = enter;
+            if let Some(net) = &net {
+                if enter {
+                    net.join(a, b)?;
+                } else {
+                    net.cut(a, b)?;
+                }
+            }
+            let what = if enter { "in range" } else { "out of range" };
+            log.timeline.push(TimelineEvent {
+                t_s: e.time_s,
+                event: what.into(),
+                robots: vec![letter(a).to_string(), letter(b).to_string()],
+            });
+            snap.note = Some(format!("{:5.1} s  {} and {} {what}", e.time_s, letter(a), letter(b)));
+        }
+        if let Some(k) = &config.kill {
+            if killed_at.is_none() && !restarted && ft >= k.at_s {
+                robots[k.robot].kill()?;
+                killed_at = Some(now);
+                log.timeline.push(TimelineEvent {
+                    t_s: ft,
+                    event: "killed (every process, SIGKILL)".into(),
+                    robots: vec![letter(k.robot).to_string()],
+                });
+                snap.note = Some(format!("{ft:5.1} s  robot {} killed", letter(k.robot)));
+            }
+            if let Some(at) = killed_at {
+                if now.duration_since(at).as_secs_f64() >= config.restart_after_s {
+                    robots[k.robot].start(&config.exe, net.as_ref())?;
+                    killed_at = None;
+                    restarted = true;
+                    log.timeline.push(TimelineEvent {
+                        t_s: ft,
+                        event: "restarted (journal, new epochs)".into(),
+                        robots: vec![letter(k.robot).to_string()],
+                    });
+                    snap.note = Some(format!("{ft:5.1} s  robot {} restarted", letter(k.robot)));
+                }
+            }
+        }
+        for robot in &mut robots {
+            robot.check_alive()?;
+        }
+        snap.flight_s = ft.min(flight_total_s);
+        snap.robots = robots.iter().map(|r| r.snapshot()).collect();
+        if now.duration_since(last_sample) >= Duration::from_secs(1) {
+            last_sample = now;
+            log.bytes_over_time
+                .push((ft, snap.robots.iter().map(|r| r.bytes_sent).collect()));
+        }
+        progress(&snap);
+        if ft >= flight_total_s + 1.0 && killed_at.is_none() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(250));
+    }
+    log.flight_s = t_flight.elapsed().as_secs_f64();
+
+    // 5. Back at base: everyone in range until the team estimate settles.
+    snap.phase = Phase::AtBase;
+    if let Some(net) = &net {
+        for a in 0..n {
+            for b in a + 1..n {
+                net.join(a, b)?;
+            }
+        }
+    }
+    log.timeline.push(TimelineEvent {
+        t_s: flight_total_s,
+        event: "back at base: every robot in range".into(),
+        robots: (0..n).map(|r| letter(r).to_string()).collect(),
+    });
+    let t_settle = Instant::now();
+    let mut stable_since: Option<(Instant, Vec<RobotSnapshot>)> = None;
+    loop {
+        for robot in &mut robots {
+            robot.check_alive()?;
+        }
+        snap.robots = robots.iter().map(|r| r.snapshot()).collect();
+        snap.note = None;
+        let ft = flight_total_s + t_settle.elapsed().as_secs_f64() * config.rate;
+        if last_sample.elapsed() >= Duration::from_secs(1) {
+            last_sample = Instant::now();
+            log.bytes_over_time
+                .push((ft, snap.robots.iter().map(|r| r.bytes_sent).collect()));
+        }
+        progress(&snap);
+        let all_converged = snap.robots.iter().all(|r| r.converged);
+        // Converged and nothing moving (closures, rounds) for two seconds.
+        let same = |a: &[RobotSnapshot], b: &[RobotSnapshot]| {
+            a.iter()
+                .zip(b)
+                .all(|(x, y)| x.closures == y.closures && x.rounds == y.rounds)
+        };
+        match &stable_since {
+            Some((since, s)) if all_converged && same(s, &snap.robots) => {
+                if since.elapsed() >= Duration::from_secs(2) {
+                    log.converged_at_base = true;
+                    break;
+                }
+            }
+            _ => stable_since = all_converged.then(|| (Instant::now(), snap.robots.clone())),
+        }
+        if t_settle.elapsed().as_secs_f64() >= config.settle_s {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(250));
+    }
+    log.settle_s = t_settle.elapsed().as_secs_f64();
+
+    // Stop every robot cleanly (its services drain and write their files).
+    snap.phase = Phase::Stopping;
+    progress(&snap);
+    for robot in &mut robots {
+        robot.stop()?;
+    }
+    log.robots_cpu_s = robot::children_cpu_s();
+    log.starts = robots.iter().map(|r| r.starts).collect();
+    drop(net);
+
+    snap.phase = Phase::Reporting;
+    progress(&snap);
+    report::write(config, &world, &log)
+}

@@ -1,0 +1,607 @@
+//! The demo's report, from the files the robots left in `<out>/<robot>/` and the world:
+//!
+//! - **Errors** (ATE, RMSE of keyframe positions against ground truth, SE(3)-aligned):
+//!   the odometry alone (`odometry.tum`, each robot aligned on its own: its frame is its
+//!   own), the team's estimate (`team_estimate.tum`) aligned per robot and — what matters
+//!   for a shared map — with **one** alignment for all robots of the team's frame, and
+//!   a centralized oracle on the same closures (every robot's `graph.g2o` merged, PCM with
+//!   the same settings, Levenberg-Marquardt), also with one alignment.
+//! - **Closures** against the simulator's truth: a closure is true when its measurement
+//!   agrees with the ground-truth relative pose (within [`TRUE_TRANSLATION_M`] and
+//!   [`TRUE_ROTATION_DEG`]); aliased when its frames are near a pair `closures.csv` lists
+//!   as aliased; accepted unless the distributed back-end's PCM left it out.
+//! - **Bandwidth**: `doorslam bw` of the run (paper Table II layout).
+//! - the rendezvous **timeline**, and plots (see [`super::plots`]).
+//!
+//! `summary.json` holds the same figures; its fields are documented on [`Summary`].
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use doorslam_backend::eval::{
+    absolute_trajectory_error, associate_by_timestamp, read_kitti_with_times, read_tum,
+    umeyama, Alignment, Trajectory,
+};
+use doorslam_backend::g2o::{merge_g2o_files, ReadOptions};
+use doorslam_backend::init::Chordal;
+use doorslam_backend::outliers::{Pcm, Scope};
+use doorslam_backend::{key, optimize, PoseGraph, SolverOptions};
+use doorslam_geometry::SE3;
+use nalgebra::Point3;
+use serde::Serialize;
+
+use super::config::{DemoConfig, World};
+use super::{io_err, DemoError, RunLog, TimelineEvent};
+use crate::flights::robot_name;
+
+/// A closure agreeing with ground truth within this translation error is true.
+pub const TRUE_TRANSLATION_M: f64 = 2.0;
+/// ... and this rotation error (degrees).
+pub const TRUE_ROTATION_DEG: f64 = 15.0;
+/// Frames within this of an aliased candidate pair make a closure aliased.
+pub const ALIAS_FRAMES: usize = 5;
+/// Timestamps of keyframes and ground truth match within this (seconds).
+const MAX_TIME_DIFF_S: f64 = 0.005;
+
+/// One robot's figures.
+#[derive(Debug, Clone, Serialize)]
+pub struct RobotSummary {
+    pub keyframes: usize,
+    /// Frames the front-end processed and lost (its `frontend.json`, when present).
+    pub frames: Option<u64>,
+    pub lost: Option<u64>,
+    /// ATE (RMSE, m) of the odometry alone, aligned on its own.
+    pub ate_vo_m: Option<f64>,
+    /// ATE of the team estimate, aligned on its own.
+    pub ate_team_m: Option<f64>,
+    /// ATE of the team estimate in the team's frame: one alignment for every robot in it.
+    pub ate_team_frame_m: Option<f64>,
+    /// ATE of the centralized oracle (same closures, same PCM), one alignment.
+    pub ate_centralized_m: Option<f64>,
+    /// Whether the distributed back-end put the robot in the team's frame, whose robot
+    /// anchors it, and whether it had converged when the robot stopped.
+    pub anchored: bool,
+    pub anchor: String,
+    pub converged: bool,
+    /// Payload bytes the robot's team link sent (resends included).
+    pub bytes_sent: u64,
+    /// Times the robot's processes were started.
+    pub starts: u32,
+}
+
+/// One inter-robot closure.
+#[derive(Debug, Clone, Serialize)]
+pub struct ClosureRow {
+    pub a: String,
+    pub b: String,
+    pub truth: bool,
+    pub aliased: bool,
+    pub accepted: bool,
+    /// Error of the measurement against the ground-truth relative pose.
+    pub translation_error_m: Option<f64>,
+    pub rotation_error_deg: Option<f64>,
+}
+
+/// Closures against the simulator's truth.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct ClosureSummary {
+    pub total: usize,
+    pub true_closures: usize,
+    pub false_closures: usize,
+    pub aliased: usize,
+    pub accepted: usize,
+    pub rejected: usize,
+    pub true_accepted: usize,
+    pub true_rejected: usize,
+    /// False closures PCM kept (should be 0).
+    pub false_accepted: usize,
+    pub false_rejected: usize,
+    pub aliased_accepted: usize,
+    pub list: Vec<ClosureRow>,
+}
+
+/// Wall time of each phase and CPU time of the robots.
+#[derive(Debug, Clone, Serialize)]
+pub struct Durations {
+    pub render_s: f64,
+    pub flight_s: f64,
+    pub settle_s: f64,
+    pub report_s: f64,
+    pub total_s: f64,
+    /// CPU seconds of every robot process together.
+    pub robots_cpu_s: f64,
+}
+
+/// `summary.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Summary {
+    pub robots: usize,
+    pub frames: usize,
+    /// `netns` (every robot a host of its own) or `loopback` (not root).
+    pub mode: String,
+    pub source: String,
+    pub per_robot: BTreeMap<String, RobotSummary>,
+    /// ATE over every robot in the team's frame (one alignment), distributed and oracle.
+    pub team_ate_m: Option<f64>,
+    pub centralized_ate_m: Option<f64>,
+    pub converged_at_base: bool,
+    pub closures: ClosureSummary,
+    /// `doorslam bw --json` of the run.
+    pub bandwidth: serde_json::Value,
+    pub timeline: Vec<TimelineEvent>,
+    pub durations: Durations,
+    pub plots: Vec<String>,
+}
+
+fn report_err(e: impl std::fmt::Display) -> DemoError {
+    DemoError::Report(e.to_string())
+}
+
+/// A robot's trajectory file, if written and not empty.
+fn read_estimate(path: &Path) -> Option<Trajectory> {
+    read_tum(path).ok().filter(|t| !t.is_empty())
+}
+
+/// Ground-truth and estimated positions of the keyframes both have.
+fn associated(truth: &Trajectory, estimate: &Trajectory) -> Option<(Trajectory, Trajectory)> {
+    associate_by_timestamp(truth, estimate, MAX_TIME_DIFF_S).ok()
+}
+
+fn rmse(errors: &[f64]) -> Option<f64> {
+    (!errors.is_empty())
+        .then(|| (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt())
+}
+
+/// Per robot: errors of each keyframe after one alignment of all robots together.
+fn joint_errors(
+    pairs: &BTreeMap<usize, (Trajectory, Trajectory)>,
+) -> Option<BTreeMap<usize, Vec<(f64, f64)>>> {
+    let (mut src, mut dst): (Vec<Point3<f64>>, Vec<Point3<f64>>) = (Vec::new(), Vec::new());
+    for (gt, est) in pairs.values() {
+        src.extend(est.positions());
+        dst.extend(gt.positions());
+    }
+    let t = umeyama(&src, &dst, false).ok()?;
+    Some(
+        pairs
+            .iter()
+            .map(|(&r, (gt, est))| {
+                let e = gt
+                    .positions()
+                    .iter()
+                    .zip(est.positions())
+                    .zip(gt.timestamps())
+                    .map(|((g, p), &time)| (time, (g - t * p).norm()))
+                    .collect();
+                (r, e)
+            })
+            .collect(),
+    )
+}
+
+/// `keyframes.csv` → id → stamp (seconds).
+fn keyframe_stamps(path: &Path) -> BTreeMap<u64, f64> {
+    let Ok(text) = std::fs::read_to_string(path) else {
+        return BTreeMap::new();
+    };
+    text.lines()
+        .skip(1)
+        .filter_map(|l| {
+            let (id, stamp) = l.split_once(',')?;
+            Some((id.parse().ok()?, stamp.parse::<u64>().ok()? as f64 * 1e-9))
+        })
+        .collect()
+}
+
+/// The ground-truth pose (and frame index) nearest to `time`.
+fn truth_at(truth: &Trajectory, time: f64) -> Option<(usize, SE3)> {
+    let i = truth
+        .timestamps()
+        .iter()
+        .enumerate()
+        .min_by(|a, b| (a.1 - time).abs().total_cmp(&(b.1 - time).abs()))?
+        .0;
+    ((truth.timestamps()[i] - time).abs() <= MAX_TIME_DIFF_S).then(|| (i, truth.poses()[i]))
+}
+
+/// `closures.csv`'s aliased pairs: (robot_a, frame_a, robot_b, frame_b).
+fn aliased_candidates(path: Option<&PathBuf>) -> Vec<(usize, usize, usize, usize)> {
+    let Some(text) = path.and_then(|p| std::fs::read_to_string(p).ok()) else {
+        return Vec::new();
+    };
+    let letter = |s: &str| s.bytes().next().map(|c| usize::from(c.wrapping_sub(b'a')));
+    text.lines()
+        .skip(1)
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f.len() == 5 && f[4].trim() == "aliased").then_some(())?;
+            Some((
+                letter(f[0])?,
+                f[1].parse().ok()?,
+                letter(f[2])?,
+                f[3].parse().ok()?,
+            ))
+        })
+        .collect()
+}
+
+/// The centralized oracle: every robot's graph merged, PCM as the robots run it, then
+/// Levenberg-Marquardt on the part connected to robot a's first keyframe.
+fn centralized(files: &[PathBuf], threshold: f64, min_clique: usize) -> Option<PoseGraph<SE3>> {
+    let (graph, _) = merge_g2o_files(files, ReadOptions::default()).ok()?;
+    let mut pcm = Pcm::new(threshold, Scope::InterRobot).ok()?;
+    pcm.min_clique = min_clique;
+    let s = pcm.run(&graph).ok()?;
+    let keep: BTreeSet<(u64, u64)> = s
+        .inliers
+        .iter()
+        .flat_map(|&(a, b)| [(a, b), (b, a)])
+        .collect();
+    let keys = graph.keys().to_vec();
+    let inter = |e: &doorslam_backend::BetweenFactor<SE3>| {
+        key::robot(keys[e.i]) != key::robot(keys[e.j])
+    };
+    let mut filtered = graph.clone();
+    filtered.retain_edges(|e| !inter(e) || keep.contains(&(keys[e.i], keys[e.j])));
+    // The component of the first pose of the lowest robot.
+    let mut adj = vec![Vec::new(); filtered.len()];
+    for e in filtered.edges() {
+        adj[e.i].push(e.j);
+        adj[e.j].push(e.i);
+    }
+    let anchor = (0..filtered.len()).min_by_key(|&i| filtered.keys()[i])?;
+    let mut seen = vec![false; filtered.len()];
+    let mut stack = vec![anchor];
+    seen[anchor] = true;
+    while let Some(a) = stack.pop() {
+        for &b in &adj[a] {
+            if !seen[b] {
+                seen[b] = true;
+                stack.push(b);
+            }
+        }
+    }
+    let mut part = PoseGraph::<SE3>::new();
+    for i in (0..filtered.len()).filter(|&i| seen[i]) {
+        part.add_pose(filtered.keys()[i], filtered.poses()[i]);
+    }
+    for e in filtered.edges() {
+        if seen[e.i] && seen[e.j] {
+            let a = part.index_of(filtered.keys()[e.i])?;
+            let b = part.index_of(filtered.keys()[e.j])?;
+            part.add_edge(a, b, e.measured, e.information).ok()?;
+        }
+    }
+    let a = part.index_of(filtered.keys()[anchor])?;
+    SE3::chordal(&mut part, a).ok()?;
+    optimize(&mut part, a, &SolverOptions::default()).ok()?;
+    Some(part)
+}
+
+/// Writes `summary.json`, `report.md` and the plots; returns the summary.
+pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary, DemoError> {
+    let t_report = std::time::Instant::now();
+    let out = &config.out;
+    let n = world.robots();
+    let letters: Vec<String> = (0..n).map(|r| robot_name(r).to_string()).collect();
+    let dir = |r: usize| out.join(&letters[r]);
+    let status = |r: usize| -> Option<serde_json::Value> {
+        serde_json::from_str(&std::fs::read_to_string(dir(r).join("backend.json")).ok()?).ok()
+    };
+    let truth: Vec<Option<Trajectory>> = world
+        .truth
+        .iter()
+        .map(|(poses, times)| read_kitti_with_times(poses, times).ok())
+        .collect();
+
+    // Errors.
+    let mut per_robot = BTreeMap::new();
+    let mut team_pairs = BTreeMap::new();
+    let mut anchors = BTreeMap::new();
+    for r in 0..n {
+        let st = status(r);
+        let get = |p: &str| st.as_ref().and_then(|s| s.pointer(p)).cloned();
+        let anchored = get("/team/anchored").and_then(|v| v.as_bool()).unwrap_or(false);
+        let anchor = get("/team/anchor")
+            .and_then(|v| v.as_str().map(String::from))
+            .unwrap_or_default();
+        let ate = |file: &str| -> Option<(f64, (Trajectory, Trajectory))> {
+            let est = read_estimate(&dir(r).join(file))?;
+            let (gt, est) = associated(truth[r].as_ref()?, &est)?;
+            let a = absolute_trajectory_error(&gt, &est, Alignment::Se3).ok()?;
+            Some((a.stats.rmse, (gt, est)))
+        };
+        let vo = ate("odometry.tum");
+        let team = ate("team_estimate.tum");
+        if let (true, Some((_, pairs))) = (anchored, &team) {
+            anchors.insert(r, anchor.clone());
+            team_pairs.insert(r, pairs.clone());
+        }
+        let frontend: Option<serde_json::Value> = std::fs::read_to_string(dir(r).join("frontend.json"))
+            .ok()
+            .and_then(|t| serde_json::from_str(&t).ok());
+        per_robot.insert(
+            letters[r].clone(),
+            RobotSummary {
+                keyframes: get("/keyframes").and_then(|v| v.as_u64()).unwrap_or(0) as usize,
+                frames: frontend.as_ref().and_then(|f| f.get("frames")).and_then(|v| v.as_u64()),
+                lost: frontend.as_ref().and_then(|f| f.get("lost")).and_then(|v| v.as_u64()),
+                ate_vo_m: vo.map(|v| v.0),
+                ate_team_m: team.map(|v| v.0),
+                ate_team_frame_m: None,
+                ate_centralized_m: None,
+                anchored,
+                anchor,
+                converged: get("/team/converged").and_then(|v| v.as_bool()).unwrap_or(false),
+                bytes_sent: super::robot::ledger_bytes_sent(&dir(r).join("ledger.json")),
+                starts: log.starts.get(r).copied().unwrap_or(0),
+            },
+        );
+    }
+    // The team's frame: the anchor most robots share (normally robot a's).
+    let team_anchor = {
+        let mut count: BTreeMap<&String, usize> = BTreeMap::new();
+        for a in anchors.values() {
+            *count.entry(a).or_default() += 1;
+        }
+        count.into_iter().max_by_key(|(_, c)| *c).map(|(a, _)| a.clone())
+    };
+    team_pairs.retain(|r, _| Some(&anchors[r]) == team_anchor.as_ref());
+    let team_errors = joint_errors(&team_pairs);
+    let mut all_team = Vec::new();
+    if let Some(errors) = &team_errors {
+        for (r, e) in errors {
+            let v: Vec<f64> = e.iter().map(|x| x.1).collect();
+            all_team.extend(v.iter().copied());
+            if let Some(s) = per_robot.get_mut(&letters[*r]) {
+                s.ate_team_frame_m = rmse(&v);
+            }
+        }
+    }
+
+    // The centralized oracle on the same closures.
+    let graphs: Vec<PathBuf> = (0..n)
+        .map(|r| dir(r).join("graph.g2o"))
+        .filter(|p| p.is_file())
+        .collect();
+    let oracle = centralized(&graphs, 0.99, 2);
+    let mut all_oracle = Vec::new();
+    if let Some(g) = &oracle {
+        let mut pairs = BTreeMap::new();
+        for r in 0..n {
+            let stamps = keyframe_stamps(&dir(r).join("keyframes.csv"));
+            let (mut times, mut poses) = (Vec::new(), Vec::new());
+            for (k, p) in g.keys().iter().zip(g.poses()) {
+                if key::robot(*k) == Some(r as u8) {
+                    if let Some(&t) = stamps.get(&key::index(*k)) {
+                        times.push(t);
+                        poses.push(*p);
+                    }
+                }
+            }
+            let Ok(est) = Trajectory::new(times, poses) else { continue };
+            if let Some(p) = truth[r].as_ref().and_then(|gt| associated(gt, &est)) {
+                pairs.insert(r, p);
+            }
+        }
+        if let Some(errors) = joint_errors(&pairs) {
+            for (r, e) in errors {
+                let v: Vec<f64> = e.iter().map(|x| x.1).collect();
+                all_oracle.extend(v.iter().copied());
+                if let Some(s) = per_robot.get_mut(&letters[r]) {
+                    s.ate_centralized_m = rmse(&v);
+                }
+            }
+        }
+    }
+
+    // Closures against the truth.
+    let aliased = aliased_candidates(world.closures_csv.as_ref());
+    let mut rejected: BTreeSet<(String, String)> = BTreeSet::new();
+    for r in 0..n {
+        if let Some(list) = status(r)
+            .as_ref()
+            .and_then(|s| s.pointer("/team/rejected_closures"))
+            .and_then(|v| v.as_array())
+        {
+            for pair in list {
+                if let (Some(a), Some(b)) = (
+                    pair.get(0).and_then(|x| x.as_str()),
+                    pair.get(1).and_then(|x| x.as_str()),
+                ) {
+                    rejected.insert((a.to_string(), b.to_string()));
+                    rejected.insert((b.to_string(), a.to_string()));
+                }
+            }
+        }
+    }
+    let stamps: Vec<BTreeMap<u64, f64>> = (0..n)
+        .map(|r| keyframe_stamps(&dir(r).join("keyframes.csv")))
+        .collect();
+    let mut closures = ClosureSummary::default();
+    if let Ok((merged, _)) = merge_g2o_files(&graphs, ReadOptions::default()) {
+        let keys = merged.keys();
+        let mut seen = BTreeSet::new();
+        for e in merged.edges() {
+            let (a, b) = (keys[e.i], keys[e.j]);
+            let (Some(ra), Some(rb)) = (key::robot(a), key::robot(b)) else { continue };
+            if ra == rb || !seen.insert((a.min(b), a.max(b))) {
+                continue;
+            }
+            let (ra, rb) = (usize::from(ra), usize::from(rb));
+            let at = |r: usize, k: u64| {
+                let t = *stamps.get(r)?.get(&key::index(k))?;
+                truth.get(r)?.as_ref().and_then(|gt| truth_at(gt, t))
+            };
+            let (ta, tb) = (at(ra, a), at(rb, b));
+            let error = ta.zip(tb).map(|((_, pa), (_, pb))| {
+                let d = e.measured.inverse() * (pa.inverse() * pb);
+                (d.translation.vector.norm(), d.rotation.angle().to_degrees())
+            });
+            let is_true = error.is_some_and(|(t, r)| t < TRUE_TRANSLATION_M && r < TRUE_ROTATION_DEG);
+            let is_aliased = ta.zip(tb).is_some_and(|((fa, _), (fb, _))| {
+                aliased.iter().any(|&(xa, xfa, xb, xfb)| {
+                    let near = |f: usize, g: usize| f.abs_diff(g) <= ALIAS_FRAMES;
+                    (xa == ra && xb == rb && near(xfa, fa) && near(xfb, fb))
+                        || (xa == rb && xb == ra && near(xfa, fb) && near(xfb, fa))
+                })
+            });
+            let (la, lb) = (key::label(a), key::label(b));
+            let accepted = !rejected.contains(&(la.clone(), lb.clone()));
+            closures.total += 1;
+            closures.true_closures += usize::from(is_true);
+            closures.false_closures += usize::from(!is_true);
+            closures.aliased += usize::from(is_aliased);
+            closures.accepted += usize::from(accepted);
+            closures.rejected += usize::from(!accepted);
+            closures.true_accepted += usize::from(is_true && accepted);
+            closures.true_rejected += usize::from(is_true && !accepted);
+            closures.false_accepted += usize::from(!is_true && accepted);
+            closures.false_rejected += usize::from(!is_true && !accepted);
+            closures.aliased_accepted += usize::from(is_aliased && accepted);
+            closures.list.push(ClosureRow {
+                a: la,
+                b: lb,
+                truth: is_true,
+                aliased: is_aliased,
+                accepted,
+                translation_error_m: error.map(|e| e.0),
+                rotation_error_deg: error.map(|e| e.1),
+            });
+        }
+    }
+
+    // Bandwidth.
+    let (bandwidth, bw_table) = match doorslam_team::bw::load(out) {
+        Ok(ledgers) => {
+            let r = doorslam_team::bw::report(&ledgers);
+            (serde_json::to_value(&r).unwrap_or_default(), r.table())
+        }
+        Err(e) => (serde_json::Value::Null, format!("no ledger: {e}")),
+    };
+
+    // Plots.
+    let plots = super::plots::draw(out, world, &truth, &team_errors, &team_pairs, log)
+        .map_err(report_err)?;
+
+    let report_s = t_report.elapsed().as_secs_f64();
+    let summary = Summary {
+        robots: n,
+        frames: world.robot_frames.iter().copied().max().unwrap_or(0),
+        mode: log.mode.clone(),
+        source: match &config.dataset {
+            Some(d) => format!("dataset {} split into {n} robots", d.display()),
+            None => format!("synthetic town, seed {}", config.seed),
+        },
+        per_robot,
+        team_ate_m: rmse(&all_team),
+        centralized_ate_m: rmse(&all_oracle),
+        converged_at_base: log.converged_at_base,
+        closures,
+        bandwidth,
+        timeline: log.timeline.clone(),
+        durations: Durations {
+            render_s: log.render_s,
+            flight_s: log.flight_s,
+            settle_s: log.settle_s,
+            report_s,
+            total_s: log.render_s + log.flight_s + log.settle_s + report_s,
+            robots_cpu_s: log.robots_cpu_s,
+        },
+        plots,
+    };
+    let json = serde_json::to_string_pretty(&summary).map_err(report_err)?;
+    let path = out.join("summary.json");
+    std::fs::write(&path, json).map_err(io_err(&path))?;
+    let path = out.join("report.md");
+    std::fs::write(&path, markdown(&summary, &bw_table)).map_err(io_err(&path))?;
+    Ok(summary)
+}
+
+fn m(v: Option<f64>) -> String {
+    v.map_or("—".into(), |x| format!("{x:.2}"))
+}
+
+/// `report.md`.
+fn markdown(s: &Summary, bw_table: &str) -> String {
+    let mut t = String::new();
+    let _ = writeln!(t, "# doorslam demo\n");
+    let _ = writeln!(
+        t,
+        "{} robots, {} frames each, {}; robots as {}. Total {:.0} s (rendering {:.0} s, flight {:.0} s, at base {:.0} s, report {:.1} s); the robots' processes used {:.0} CPU seconds.\n",
+        s.robots,
+        s.frames,
+        s.source,
+        if s.mode == "netns" {
+            "hosts of their own (network namespaces on a bridge, radio range by nftables)"
+        } else {
+            "processes on the loopback (not root: no namespaces, always in range)"
+        },
+        s.durations.total_s,
+        s.durations.render_s,
+        s.durations.flight_s,
+        s.durations.settle_s,
+        s.durations.report_s,
+        s.durations.robots_cpu_s,
+    );
+    let _ = writeln!(t, "![trajectories](trajectories.png)\n");
+    let _ = writeln!(t, "## Trajectory error (ATE, RMSE of keyframe positions, m)\n");
+    let _ = writeln!(
+        t,
+        "| robot | keyframes | odometry alone | team estimate | team estimate, team frame | centralized oracle, team frame | anchored to | converged |"
+    );
+    let _ = writeln!(t, "|---|---|---|---|---|---|---|---|");
+    for (r, x) in &s.per_robot {
+        let _ = writeln!(
+            t,
+            "| {r} | {} | {} | {} | {} | {} | {} | {} |",
+            x.keyframes,
+            m(x.ate_vo_m),
+            m(x.ate_team_m),
+            m(x.ate_team_frame_m),
+            m(x.ate_centralized_m),
+            if x.anchored { x.anchor.as_str() } else { "—" },
+            if x.converged { "yes" } else { "no" }
+        );
+    }
+    let _ = writeln!(
+        t,
+        "| team | | | | {} | {} | | {} |\n",
+        m(s.team_ate_m),
+        m(s.centralized_ate_m),
+        if s.converged_at_base { "yes" } else { "no" }
+    );
+    let _ = writeln!(
+        t,
+        "Odometry alone and team estimate: each robot aligned on its own (SE(3)). Team frame: one alignment for every robot the distributed back-end put in the team's frame — what a shared map needs. Oracle: every robot's graph merged, the same PCM, Levenberg-Marquardt.\n"
+    );
+    let _ = writeln!(t, "![error over time](error.png)\n");
+    let c = &s.closures;
+    let _ = writeln!(t, "## Loop closures against the simulator's truth\n");
+    let _ = writeln!(
+        t,
+        "{} inter-robot closures verified (PnP-RANSAC): {} true, {} false ({} of them at aliased look-alikes). PCM inside the distributed back-end kept {} and left out {}.\n",
+        c.total, c.true_closures, c.false_closures, c.aliased, c.accepted, c.rejected
+    );
+    let _ = writeln!(t, "| | accepted | rejected |\n|---|---|---|");
+    let _ = writeln!(t, "| true | {} | {} |", c.true_accepted, c.true_rejected);
+    let _ = writeln!(t, "| false | {} | {} |", c.false_accepted, c.false_rejected);
+    let _ = writeln!(t, "| of which aliased | {} | {} |\n", c.aliased_accepted, c.aliased - c.aliased_accepted);
+    let _ = writeln!(
+        t,
+        "True: the measurement agrees with the ground-truth relative pose within {TRUE_TRANSLATION_M} m and {TRUE_ROTATION_DEG}°. Aliased: within {ALIAS_FRAMES} frames of a pair `closures.csv` lists as two copies of one building.\n"
+    );
+    let _ = writeln!(t, "## Bandwidth (paper Table II layout, `doorslam bw`)\n\n```\n{bw_table}\n```\n");
+    let _ = writeln!(t, "![bytes over time](bytes.png)\n");
+    let _ = writeln!(t, "## Timeline\n\n| flight time (s) | event | robots |\n|---|---|---|");
+    for e in &s.timeline {
+        let _ = writeln!(t, "| {:.1} | {} | {} |", e.t_s, e.event, e.robots.join(", "));
+    }
+    let _ = writeln!(
+        t,
+        "\nFiles: `summary.json` (these figures), `<robot>/` (robot.toml, robot.log, ledger.json, status.json, backend.json, odometry.tum, team_estimate.tum, graph.g2o, keyframes.csv, the journal), `world/` (the rendered flights and their truth). `doorslam bw --json {}` reads the ledgers.",
+        "<this folder>"
+    );
+    t
+}

@@ -1,0 +1,247 @@
+//! One robot of the demo: its `doorslam up` process (in its network namespace), its files,
+//! and what its status files say.
+
+use std::fs::OpenOptions;
+use std::os::unix::process::CommandExt;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use crate::flights::robot_name;
+use crate::netns::Net;
+
+use super::{io_err, DemoError};
+
+/// Where a robot is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RobotState {
+    Created,
+    Running,
+    Killed,
+    Stopped,
+}
+
+/// What a robot's status files say now.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RobotSnapshot {
+    pub name: char,
+    pub state: RobotState,
+    /// Frames the front-end processed and the frames it lost (its `frontend.json`).
+    pub frames: Option<u64>,
+    pub lost: Option<u64>,
+    pub keyframes: u64,
+    /// Meetings with any peer (the team link's sessions).
+    pub rendezvous: u64,
+    /// Inter-robot closures the back-end took, and those PCM left out.
+    pub closures: u64,
+    pub rejected: u64,
+    /// Distributed back-end steps that solved something.
+    pub rounds: u64,
+    pub converged: bool,
+    /// Bytes this robot's team link sent (its ledger, payload).
+    pub bytes_sent: u64,
+}
+
+/// A robot's process and files.
+pub struct Robot {
+    index: usize,
+    pub dir: PathBuf,
+    pub config: PathBuf,
+    pub log: PathBuf,
+    child: Option<Child>,
+    pub state: RobotState,
+    pub starts: u32,
+}
+
+fn read_json(path: &Path) -> Option<serde_json::Value> {
+    let text = std::fs::read_to_string(path).ok()?;
+    serde_json::from_str(&text).ok()
+}
+
+impl Robot {
+    /// Writes the robot's folder and configuration.
+    pub fn create(out: &Path, index: usize, robot_toml: &str) -> Result<Robot, DemoError> {
+        let dir = out.join(robot_name(index).to_string());
+        std::fs::create_dir_all(&dir).map_err(io_err(&dir))?;
+        let config = dir.join("robot.toml");
+        std::fs::write(&config, robot_toml).map_err(io_err(&config))?;
+        Ok(Robot {
+            index,
+            log: dir.join("robot.log"),
+            dir,
+            config,
+            child: None,
+            state: RobotState::Created,
+            starts: 0,
+        })
+    }
+
+    pub fn name(&self) -> char {
+        robot_name(self.index)
+    }
+
+    /// Starts `doorslam up` (in the robot's namespace when there is a network), in a
+    /// process group of its own so that a kill reaches every service.
+    pub fn start(&mut self, exe: &Path, net: Option<&Net>) -> Result<(), DemoError> {
+        let log = OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&self.log)
+            .map_err(io_err(&self.log))?;
+        let err = log.try_clone().map_err(io_err(&self.log))?;
+        let mut command = match net {
+            Some(net) => net.command(self.index, exe)?,
+            None => Command::new(exe),
+        };
+        command
+            .args(["up", "--config"])
+            .arg(&self.config)
+            .args(["--restart", "on-failure"])
+            .env(
+                "RUST_LOG",
+                std::env::var("RUST_LOG").unwrap_or_else(|_| "info,zenoh=warn".into()),
+            )
+            .stdin(Stdio::null())
+            .stdout(log)
+            .stderr(err)
+            .process_group(0);
+        let child = command.spawn().map_err(|e| DemoError::Robot {
+            robot: self.name(),
+            reason: format!("cannot start {}: {e}", exe.display()),
+            log: self.log.clone(),
+        })?;
+        self.child = Some(child);
+        self.state = RobotState::Running;
+        self.starts += 1;
+        Ok(())
+    }
+
+    /// SIGKILL to every process of the robot (its process group): a crash of the whole
+    /// computer, no service gets to write anything.
+    pub fn kill(&mut self) -> Result<(), DemoError> {
+        if let Some(mut child) = self.child.take() {
+            let pgid = child.id() as i32;
+            // SAFETY: signals a process group we created; no memory is involved.
+            unsafe { libc::kill(-pgid, libc::SIGKILL) };
+            let _ = child.wait();
+        }
+        self.state = RobotState::Killed;
+        Ok(())
+    }
+
+    /// A robot whose `up` exited while it should run: `up` stops only when a service
+    /// keeps failing (or cannot start at all), so the demo stops and names it.
+    pub fn check_alive(&mut self) -> Result<(), DemoError> {
+        if self.state != RobotState::Running {
+            return Ok(());
+        }
+        if let Some(child) = self.child.as_mut() {
+            if let Ok(Some(status)) = child.try_wait() {
+                self.state = RobotState::Stopped;
+                let tail = std::fs::read_to_string(&self.log)
+                    .map(|t| {
+                        let lines: Vec<&str> = t.lines().rev().take(12).collect();
+                        lines.into_iter().rev().collect::<Vec<_>>().join("\n")
+                    })
+                    .unwrap_or_default();
+                return Err(DemoError::Robot {
+                    robot: self.name(),
+                    reason: format!(
+                        "its services stopped ({status}); the last lines of its log:\n{tail}"
+                    ),
+                    log: self.log.clone(),
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// SIGTERM to `up`, which stops the services in reverse start order (each drains its
+    /// queues and writes its files); SIGKILL to the group after `grace`.
+    pub fn stop(&mut self) -> Result<(), DemoError> {
+        let grace = Duration::from_secs(20);
+        if let Some(mut child) = self.child.take() {
+            let pid = child.id() as i32;
+            // SAFETY: signals our own child process.
+            unsafe { libc::kill(pid, libc::SIGTERM) };
+            let deadline = Instant::now() + grace;
+            loop {
+                match child.try_wait() {
+                    Ok(Some(_)) | Err(_) => break,
+                    Ok(None) if Instant::now() >= deadline => {
+                        // SAFETY: as in `kill`.
+                        unsafe { libc::kill(-pid, libc::SIGKILL) };
+                        let _ = child.wait();
+                        break;
+                    }
+                    Ok(None) => std::thread::sleep(Duration::from_millis(100)),
+                }
+            }
+        }
+        self.state = RobotState::Stopped;
+        Ok(())
+    }
+
+    /// Reads the robot's status files (absent or half-written ones count as nothing yet).
+    pub fn snapshot(&self) -> RobotSnapshot {
+        let backend = read_json(&self.dir.join("backend.json"));
+        let team = read_json(&self.dir.join("status.json"));
+        let frontend = read_json(&self.dir.join("frontend.json"));
+        let u = |v: Option<&serde_json::Value>| v.and_then(|x| x.as_u64()).unwrap_or(0);
+        let b = backend.as_ref();
+        let rendezvous = team
+            .as_ref()
+            .and_then(|t| t.get("peers"))
+            .and_then(|p| p.as_object())
+            .map_or(0, |peers| {
+                peers
+                    .values()
+                    .map(|p| u(p.pointer("/stats/meetings")))
+                    .sum()
+            });
+        RobotSnapshot {
+            name: self.name(),
+            state: self.state,
+            frames: frontend.as_ref().and_then(|f| f.get("frames")).and_then(|x| x.as_u64()),
+            lost: frontend.as_ref().and_then(|f| f.get("lost")).and_then(|x| x.as_u64()),
+            keyframes: u(b.and_then(|b| b.get("keyframes"))),
+            rendezvous,
+            closures: u(b.and_then(|b| b.get("closures"))),
+            rejected: b
+                .and_then(|b| b.pointer("/team/rejected_closures"))
+                .and_then(|r| r.as_array())
+                .map_or(0, |r| r.len() as u64),
+            rounds: u(b.and_then(|b| b.pointer("/team/updates"))),
+            converged: b
+                .and_then(|b| b.pointer("/team/converged"))
+                .and_then(|c| c.as_bool())
+                .unwrap_or(false),
+            bytes_sent: ledger_bytes_sent(&self.dir.join("ledger.json")),
+        }
+    }
+}
+
+/// Payload bytes a ledger counts as sent (first sends and resends).
+pub fn ledger_bytes_sent(path: &Path) -> u64 {
+    doorslam_team::ledger::LedgerFile::read(path).map_or(0, |l| {
+        l.traffic
+            .iter()
+            .filter(|t| t.direction == doorslam_team::ledger::Direction::Sent)
+            .map(|t| t.counts.payload_bytes)
+            .sum()
+    })
+}
+
+/// CPU seconds (user + system) of every child process that ended and was waited for,
+/// their own children included.
+pub fn children_cpu_s() -> f64 {
+    // SAFETY: getrusage fills the struct it is given; zeroed is a valid initial value.
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: a valid pointer to a rusage, RUSAGE_CHILDREN is a valid `who`.
+    if unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut usage) } != 0 {
+        return 0.0;
+    }
+    let s = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    s(usage.ru_utime) + s(usage.ru_stime)
+}

@@ -1,0 +1,241 @@
+//! The back-end's side of the team (`service::team::TeamBridge`) with the team link played
+//! in-process: each message handed over is re-headed as the protocol would send it (the
+//! sender's team-link epoch, a sequence per kind) and given to the peer's bridge. Two
+//! robots with exact odometry and exact closures must end with the true poses in the
+//! team's frame (robot a's first keyframe), and keep them through restarts of a team link
+//! and of a back-end.
+
+use std::collections::BTreeMap;
+
+use doorslam_backend::distributed::AgentOptions;
+use doorslam_backend::service::TeamBridge;
+use doorslam_geometry::{key, TangentMatrix, SE3};
+use doorslam_ipc::wire::{Header, Message, RobotId};
+use doorslam_ipc::EnvelopeEvent;
+use nalgebra::{Translation3, UnitQuaternion, Vector3};
+
+const N: u64 = 12;
+
+/// True pose of keyframe `i` of robot `r`: two parallel lines 2 m apart, gently turning.
+fn truth(r: u8, i: u64) -> SE3 {
+    let s = i as f64;
+    SE3::from_parts(
+        Translation3::new(s * 1.0, 2.0 * f64::from(r), 0.1 * s),
+        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.05 * s + 0.3 * f64::from(r)),
+    )
+}
+
+fn information() -> TangentMatrix {
+    TangentMatrix::from_diagonal(&nalgebra::Vector6::new(1e4, 1e4, 1e4, 1e2, 1e2, 1e2))
+}
+
+/// One robot: its bridge and what the in-process "team link" knows of it.
+struct Robot {
+    r: u8,
+    bridge: TeamBridge,
+    team_epoch: u64,
+    /// Sequence per kind of the messages this robot's link sent.
+    sequences: BTreeMap<&'static str, u64>,
+}
+
+impl Robot {
+    fn new(r: u8, backend_epoch: u64, team_epoch: u64) -> Self {
+        let id = RobotId::new(&format!("robot{r}")).unwrap();
+        let mut bridge = TeamBridge::new(r, id, backend_epoch, AgentOptions::default());
+        // Its odometry, starting at the identity in its own frame (it does not know where
+        // it is relative to the other robot).
+        let origin = truth(r, 0).inverse();
+        for i in 0..N {
+            let k = key::symbol(r, i).unwrap();
+            bridge.add_pose(k, origin * truth(r, i)).unwrap();
+            if i > 0 {
+                let z = truth(r, i - 1).inverse() * truth(r, i);
+                bridge
+                    .add_odometry(key::symbol(r, i - 1).unwrap(), k, z, information())
+                    .unwrap();
+            }
+        }
+        Self {
+            r,
+            bridge,
+            team_epoch,
+            sequences: BTreeMap::new(),
+        }
+    }
+
+    fn add_true_closures(&mut self) {
+        for (i, j) in [(3, 2), (6, 6), (9, 10)] {
+            let (a, b) = (key::symbol(0, i).unwrap(), key::symbol(1, j).unwrap());
+            let z = truth(0, i).inverse() * truth(1, j);
+            self.bridge.add_closure(a, b, z, information()).unwrap();
+        }
+    }
+
+    fn announce(&mut self, peer: &Robot) {
+        self.bridge
+            .on_envelope(
+                EnvelopeEvent::PeerPresent as u32,
+                u32::from(peer.r),
+                peer.team_epoch,
+                &[],
+            )
+            .unwrap();
+    }
+}
+
+/// One round: both step, and every message crosses as the team link would carry it.
+fn round(x: &mut Robot, y: &mut Robot) -> usize {
+    let mut moved = 0;
+    for (from, to) in [(0, 1), (1, 0)] {
+        let (src, dst) = if from == 0 {
+            (&mut *x, &mut *y)
+        } else {
+            (&mut *y, &mut *x)
+        };
+        src.bridge.step().unwrap();
+        for (peer, bytes) in src.bridge.outgoing().unwrap() {
+            assert_eq!(peer, dst.r);
+            let m = Message::decode(&bytes).unwrap();
+            let kind = m.kind().name();
+            let seq = src.sequences.entry(kind).or_insert(0);
+            let sent = Message::new(
+                Header {
+                    sender: RobotId::new(&format!("robot{}", src.r)).unwrap(),
+                    epoch: src.team_epoch,
+                    sequence: *seq,
+                },
+                m.body,
+            );
+            *seq += 1;
+            dst.bridge
+                .on_envelope(
+                    EnvelopeEvent::Message as u32,
+                    u32::from(src.r),
+                    0,
+                    &sent.encode().unwrap(),
+                )
+                .unwrap();
+            moved += 1;
+        }
+        let _ = to;
+    }
+    moved
+}
+
+fn settle(x: &mut Robot, y: &mut Robot) -> usize {
+    let mut rounds = 0;
+    while rounds < 50 {
+        rounds += 1;
+        let moved = round(x, y);
+        if moved == 0 && x.bridge.agent().converged() && y.bridge.agent().converged() {
+            break;
+        }
+    }
+    rounds
+}
+
+fn max_error(robot: &Robot) -> f64 {
+    robot
+        .bridge
+        .estimate()
+        .map(|(k, p)| {
+            let t = truth(key::robot(k).unwrap(), key::index(k));
+            (p.translation.vector - t.translation.vector).norm() + p.rotation.angle_to(&t.rotation)
+        })
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn two_robots_reach_the_true_team_estimate_through_the_relay() {
+    let mut a = Robot::new(0, 1, 1);
+    let mut b = Robot::new(1, 1, 1);
+    a.add_true_closures();
+    b.add_true_closures();
+    a.announce(&b);
+    b.announce(&a);
+    let rounds = settle(&mut a, &mut b);
+    assert!(rounds < 50, "no convergence in 50 rounds");
+    assert!(a.bridge.agent().anchored() && b.bridge.agent().anchored());
+    assert!(max_error(&a) < 1e-3, "a: {}", max_error(&a));
+    assert!(max_error(&b) < 1e-3, "b: {}", max_error(&b));
+    // No acknowledgement crossed the radio: the relay only carries graphs.
+    assert_eq!(a.bridge.agent_stats().resent, 0);
+    assert!(a.bridge.stats().messages_out > 0 && b.bridge.stats().messages_in > 0);
+}
+
+#[test]
+fn a_restarted_back_end_gets_the_team_estimate_back() {
+    let mut a = Robot::new(0, 1, 1);
+    let mut b = Robot::new(1, 1, 1);
+    a.add_true_closures();
+    b.add_true_closures();
+    a.announce(&b);
+    b.announce(&a);
+    settle(&mut a, &mut b);
+    assert!(max_error(&b) < 1e-3);
+
+    // b's back-end restarts (its journal gives it the same graph, a new epoch); its team
+    // link starts a new epoch too, and a hears b again with it.
+    let mut b = Robot::new(1, 2, 2);
+    b.add_true_closures();
+    b.announce(&a);
+    a.announce(&b);
+    assert!(max_error(&b) > 0.5, "b starts from its odometry frame");
+    let rounds = settle(&mut a, &mut b);
+    assert!(rounds < 50);
+    assert!(max_error(&b) < 1e-3, "b after restart: {}", max_error(&b));
+    assert!(max_error(&a) < 1e-3);
+}
+
+#[test]
+fn a_restarted_team_link_makes_the_back_end_send_again() {
+    let mut a = Robot::new(0, 1, 1);
+    let mut b = Robot::new(1, 1, 1);
+    a.add_true_closures();
+    b.add_true_closures();
+    // The team links announce themselves; then a's link restarts before b heard anything.
+    for r in [&mut a, &mut b] {
+        let e = r.team_epoch;
+        assert!(r
+            .bridge
+            .on_envelope(EnvelopeEvent::TeamStarted as u32, u32::from(r.r), e, &[])
+            .unwrap());
+    }
+    a.announce(&b);
+    b.announce(&a);
+    // a's messages of the first round are lost with its old team link.
+    a.bridge.step().unwrap();
+    assert!(!a.bridge.outgoing().unwrap().is_empty());
+    a.team_epoch = 2;
+    a.sequences.clear();
+    assert!(a
+        .bridge
+        .on_envelope(EnvelopeEvent::TeamStarted as u32, 0, 2, &[])
+        .unwrap());
+    assert_eq!(a.bridge.stats().team_restarts, 1);
+    // Peers are present again once their Hello comes through the new link.
+    a.announce(&b);
+    b.announce(&a);
+    let rounds = settle(&mut a, &mut b);
+    assert!(rounds < 50);
+    assert!(max_error(&b) < 1e-3, "b: {}", max_error(&b));
+}
+
+#[test]
+fn bad_envelopes_are_refused_and_counted() {
+    let mut a = Robot::new(0, 1, 1);
+    assert!(a.bridge.on_envelope(99, 1, 1, &[]).is_err());
+    assert!(a
+        .bridge
+        .on_envelope(EnvelopeEvent::Message as u32, 1, 1, b"not a message")
+        .is_err());
+    assert!(a
+        .bridge
+        .on_envelope(EnvelopeEvent::PeerPresent as u32, 200, 1, &[])
+        .is_err());
+    assert!(a
+        .bridge
+        .on_envelope(EnvelopeEvent::PeerPresent as u32, 0, 1, &[])
+        .is_err(), "this robot itself is no peer");
+    assert_eq!(a.bridge.stats().bad_envelopes, 4);
+}
