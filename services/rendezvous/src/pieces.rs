@@ -491,3 +491,207 @@ impl BackendExchange for BackendRelay {
         });
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use doorslam_geometry::SE3;
+    use doorslam_ipc::wire::{Header, Hello};
+    use doorslam_ipc::{KeyframeSource, MAX_DESCRIPTOR_DIM, MAX_KEYFRAME_FEATURES};
+    use nalgebra::{Point3, Translation3, UnitQuaternion, Vector3};
+
+    fn calib() -> StereoCalibration {
+        StereoCalibration {
+            fx: 458.0,
+            fy: 457.0,
+            cx: 367.0,
+            cy: 248.0,
+            baseline_m: 0.11,
+        }
+    }
+
+    /// A world of points with one distinct descriptor each.
+    fn points() -> Vec<(Point3<f64>, [u8; 32])> {
+        let mut s = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            s
+        };
+        (0..300)
+            .map(|_| {
+                let u = |v: u64| (v % 10_000) as f64 / 10_000.0;
+                let p = Point3::new(u(next()) * 10.0 - 5.0, u(next()) * 6.0 - 3.0, 4.0 + u(next()) * 12.0);
+                let d = std::array::from_fn(|_| (next() & 0xff) as u8);
+                (p, d)
+            })
+            .collect()
+    }
+
+    /// The keyframe a camera at `pose` (camera-to-world) makes of the points.
+    fn keyframe(robot: u32, id: u64, pose: &SE3) -> Box<Keyframe> {
+        let c = calib();
+        let mut kf = Box::new(Keyframe {
+            robot,
+            source: KeyframeSource::VisualOdometry as u32,
+            id,
+            frame_seq: id,
+            stamp_ns: id,
+            pose: doorslam_geometry::pose_to_array(pose),
+            n_features: 0,
+            reserved: 0,
+            features: [Feature::default(); MAX_KEYFRAME_FEATURES],
+        });
+        let mut n = 0;
+        for (p, d) in points() {
+            let q = pose.inverse() * p;
+            if q.z < 1.0 {
+                continue;
+            }
+            let uv = [c.fx * q.x / q.z + c.cx, c.fy * q.y / q.z + c.cy];
+            if !(0.0..752.0).contains(&uv[0]) || !(0.0..480.0).contains(&uv[1]) {
+                continue;
+            }
+            kf.features[n] = Feature {
+                uv: [uv[0] as f32, uv[1] as f32],
+                point: [q.x as f32, q.y as f32, q.z as f32],
+                descriptor: d,
+            };
+            n += 1;
+        }
+        kf.n_features = n as u32;
+        kf
+    }
+
+    fn descriptor(robot: u32, keyframe: u64, v: &[f32]) -> Box<PlaceDescriptor> {
+        let mut d = Box::new(PlaceDescriptor {
+            robot,
+            dim: v.len() as u32,
+            keyframe,
+            values: [0.0; MAX_DESCRIPTOR_DIM],
+        });
+        d.values[..v.len()].copy_from_slice(v);
+        d
+    }
+
+    fn unit(i: usize) -> Vec<f32> {
+        (0..DESCRIPTOR_DIM).map(|k| if k == i { 1.0 } else { 0.0 }).collect()
+    }
+
+    #[test]
+    fn descriptors_are_batched_by_keyframe_range_and_gaps_are_covered() {
+        let s = Shared::new(0, calib(), MatchSettings::default());
+        for id in [0, 1, 3] {
+            s.add_descriptor(&descriptor(0, id, &unit(id as usize))).unwrap();
+        }
+        let mut places = Places(s.clone());
+        let b = places.descriptors_since(0, 2);
+        assert_eq!(b.keyframes, 0..2);
+        assert_eq!(b.descriptors.len(), 2);
+        // Keyframe 2 has no descriptor (place recognition skipped it): covered by 3's.
+        let b = places.descriptors_since(2, 16);
+        assert_eq!(b.keyframes, 2..4);
+        assert_eq!(b.descriptors.len(), 1);
+        assert_eq!(b.descriptors[0].key, key::symbol(0, 3).unwrap());
+        assert_eq!(places.descriptors_since(4, 16).keyframes, 4..4);
+        // Another robot's or a wrong-size descriptor is refused, not stored.
+        assert!(s.add_descriptor(&descriptor(1, 9, &unit(0))).is_err());
+        assert!(s.add_descriptor(&descriptor(0, 9, &[1.0; 64])).is_err());
+        assert_eq!(s.stats().refused_inputs, 2);
+    }
+
+    #[test]
+    fn matching_keeps_the_nearest_below_the_threshold() {
+        let s = Shared::new(1, calib(), MatchSettings::default());
+        for id in 0..5 {
+            s.add_descriptor(&descriptor(1, id, &unit(id as usize))).unwrap();
+        }
+        let peer = RobotId::new("a").unwrap();
+        let near = Descriptor::quantize(key::symbol(0, 7).unwrap(), &unit(3)).unwrap();
+        let far = Descriptor::quantize(key::symbol(0, 8).unwrap(), &unit(100)).unwrap();
+        let m = Places(s.clone()).match_descriptors(&peer, &[near, far]);
+        assert_eq!(m.len(), 1, "{m:?}");
+        assert_eq!(m[0].candidate, key::symbol(1, 3).unwrap());
+        assert!(m[0].distance < 1e-3);
+    }
+
+    #[test]
+    fn verification_recovers_the_relative_pose_in_the_closure_convention() {
+        let x_a = SE3::identity();
+        let x_b = SE3::from_parts(
+            Translation3::new(0.6, -0.1, 0.4),
+            UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 0.08),
+        );
+        // Robot b's keyframe 5 is the candidate; robot a verifies it against its keyframe 2.
+        let sb = Shared::new(1, calib(), MatchSettings::default());
+        sb.add_keyframe(&keyframe(1, 5, &x_b)).unwrap();
+        let packet = Places(sb.clone())
+            .verification_features(key::symbol(1, 5).unwrap())
+            .unwrap();
+        assert!(packet.features.len() <= MatchSettings::default().max_packet_features);
+        let sa = Shared::new(0, calib(), MatchSettings::default());
+        sa.add_keyframe(&keyframe(0, 2, &x_a)).unwrap();
+        let m = Match {
+            query: key::symbol(0, 2).unwrap(),
+            candidate: key::symbol(1, 5).unwrap(),
+            distance: 0.1,
+        };
+        let peer = RobotId::new("b").unwrap();
+        let closure = PnpVerifier(sa.clone()).verify(&peer, &m, &packet).unwrap();
+        assert_eq!((closure.key_a, closure.key_b), (m.query, m.candidate));
+        // z ≈ X_a⁻¹ X_b: the back-end's convention for an edge from key_a to key_b.
+        let err = closure.relative.se3().inverse() * (x_a.inverse() * x_b);
+        assert!(err.translation.vector.norm() < 0.01, "{err:?}");
+        assert!(err.rotation.angle() < 0.002, "{err:?}");
+        // An unknown own keyframe is a rejection, counted.
+        let unknown = Match {
+            query: key::symbol(0, 99).unwrap(),
+            ..m
+        };
+        assert!(PnpVerifier(sa.clone()).verify(&peer, &unknown, &packet).is_none());
+        assert_eq!(sa.stats().rejected["unknown_keyframe"], 1);
+    }
+
+    #[test]
+    fn the_relay_carries_presence_messages_and_closures() {
+        let s = Shared::new(0, calib(), MatchSettings::default());
+        let mut relay = BackendRelay(s.clone());
+        let peer = RobotId::new("bravo").unwrap();
+        let header = Header {
+            sender: peer.clone(),
+            epoch: 4,
+            sequence: 9,
+        };
+        // Before the peer's Hello, its back-end messages are refused.
+        assert!(relay
+            .receive(&peer, &header, Body::Hello(Hello { robot: 1 }))
+            .is_err());
+        relay.presence(&peer, 1, 4, true);
+        relay
+            .receive(&peer, &header, Body::Hello(Hello { robot: 1 }))
+            .unwrap();
+        let closure = LoopClosure {
+            key_a: key::symbol(0, 3).unwrap(),
+            key_b: key::symbol(1, 8).unwrap(),
+            relative: Pose::from_se3(&SE3::identity()).unwrap(),
+            information: Information::from_matrix(&(doorslam_geometry::TangentMatrix::identity() * 50.0)).unwrap(),
+            inliers: 40,
+        };
+        relay.loop_closures(&peer, &[closure]);
+        let (envelopes, closures) = s.take_for_backend();
+        assert_eq!(envelopes.len(), 2);
+        assert_eq!(envelopes[0].event, EnvelopeEvent::PeerPresent);
+        assert_eq!((envelopes[0].peer_robot, envelopes[0].epoch), (1, 4));
+        assert_eq!(envelopes[1].event, EnvelopeEvent::Message);
+        assert_eq!(Message::decode(&envelopes[1].bytes).unwrap().header, header);
+        assert_eq!(closures.len(), 1);
+        assert_eq!((closures[0].robot_a, closures[0].keyframe_a), (0, 3));
+        assert_eq!((closures[0].robot_b, closures[0].keyframe_b), (1, 8));
+        // What the back-end queues for robot 1 goes to the peer that said it is robot 1.
+        s.queue_for_peer(1, Message::new(header.clone(), Body::Hello(Hello { robot: 0 })));
+        assert_eq!(relay.messages_for(&RobotId::new("other").unwrap()).len(), 0);
+        assert_eq!(relay.messages_for(&peer).len(), 1);
+        assert_eq!(relay.messages_for(&peer).len(), 0);
+    }
+}
