@@ -201,6 +201,11 @@ fn a_restarted_team_link_makes_the_back_end_send_again() {
             .on_envelope(EnvelopeEvent::TeamStarted as u32, u32::from(r.r), e, &[])
             .unwrap());
     }
+    // The same announcement again is no news: no answer (the two ends would ping-pong).
+    assert!(!a
+        .bridge
+        .on_envelope(EnvelopeEvent::TeamStarted as u32, 0, 1, &[])
+        .unwrap());
     a.announce(&b);
     b.announce(&a);
     // a's messages of the first round are lost with its old team link.

@@ -234,6 +234,19 @@ impl Shared {
         }
     }
 
+    /// Tells the back-end the link's epoch (after the back-end announced itself: a
+    /// back-end that started after the link missed [`Self::new_epoch`]'s announcement).
+    pub fn announce_team(&self, epoch: u64) {
+        let mut s = self.lock();
+        let robot = u32::from(s.robot);
+        s.to_backend.push_back(ToBackend {
+            event: EnvelopeEvent::TeamStarted,
+            peer_robot: robot,
+            epoch,
+            bytes: Vec::new(),
+        });
+    }
+
     /// The link started a new epoch: messages the back-end had queued for peers were
     /// written for the old one and are dropped (the back-end sends again after
     /// [`EnvelopeEvent::TeamStarted`]).

@@ -31,8 +31,9 @@ pub struct IpcSide {
     team_out: Receiver<WireEnvelope>,
     team_in: Sender<WireEnvelope>,
     closures: Sender<LoopClosure>,
-    /// The back-end's epoch, from its last start announcement.
+    /// The back-end's epoch, from its last start announcement, and the link's.
     backend_epoch: Option<u64>,
+    link_epoch: u64,
     // Declared last: dropped after the ports.
     _node: doorslam_ipc::iceoryx2::prelude::Node<doorslam_ipc::iceoryx2::prelude::ipc::Service>,
 }
@@ -53,6 +54,7 @@ impl IpcSide {
             shared,
             robot_index,
             backend_epoch: None,
+            link_epoch: 0,
             _node: node,
         })
     }
@@ -79,6 +81,7 @@ impl RobotSide for IpcSide {
     }
 
     fn epoch_started(&mut self, epoch: u64) -> Result<(), RunError> {
+        self.link_epoch = epoch;
         self.shared.new_epoch(epoch);
         self.publish()
     }
@@ -106,8 +109,11 @@ impl RobotSide for IpcSide {
                     match self.backend_epoch.replace(e.epoch) {
                         // The back-end restarted: peers hold state it lost.
                         Some(old) if old != e.epoch => restart = true,
-                        // First heard (or again after a team restart): tell it who is here.
-                        _ => self.shared.announce_presence(),
+                        // First heard (or again): tell it this link's epoch and who is here.
+                        _ => {
+                            self.shared.announce_team(self.link_epoch);
+                            self.shared.announce_presence();
+                        }
                     }
                 }
                 Ok(EnvelopeEvent::Message) => match Message::decode(e.bytes()) {

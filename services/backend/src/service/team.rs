@@ -156,7 +156,7 @@ impl TeamBridge {
     }
 
     /// One envelope from the team link. `Ok(true)` when the back-end must announce itself
-    /// (the team link restarted and does not know this back-end's epoch).
+    /// (a team link it had not heard of yet, which may not know this back-end's epoch).
     pub fn on_envelope(
         &mut self,
         event: u32,
@@ -185,9 +185,12 @@ impl TeamBridge {
                         self.agent.set_present(*r, false);
                     }
                 }
+                // Announce this back-end when the link is new to it (not for a repeat,
+                // or the two ends would answer each other forever).
+                let new = self.team_epoch != Some(epoch);
                 self.team_epoch = Some(epoch);
                 self.dirty = true;
-                Ok(true)
+                Ok(new)
             }
             EnvelopeEvent::PeerPresent | EnvelopeEvent::PeerAbsent => {
                 let r = robot().inspect_err(|_| self.stats.bad_envelopes += 1)?;
