@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use doorslam_backend::service::BackendSection;
 use doorslam_camera::CameraConfig;
+use doorslam_frontend::service::FrontendSection;
 use serde::Deserialize;
 
 /// The whole file. Unknown sections or keys are errors: a typo must not be silently ignored.
@@ -17,6 +18,8 @@ pub struct RobotConfig {
     pub camera: CameraConfig,
     #[serde(default)]
     pub backend: BackendSection,
+    #[serde(default)]
+    pub frontend: FrontendSection,
     #[serde(default)]
     pub sim_keyframes: SimKeyframesSection,
     #[serde(default)]
@@ -55,9 +58,7 @@ pub struct UpSection {
 }
 
 fn default_services() -> Vec<String> {
-    ["backend", "sim-keyframes", "camera"]
-        .map(String::from)
-        .to_vec()
+    ["backend", "frontend", "camera"].map(String::from).to_vec()
 }
 
 impl Default for UpSection {
@@ -125,6 +126,7 @@ impl RobotConfig {
         }
         self.camera.validate()?;
         self.backend.validate()?;
+        self.frontend.validate()?;
         self.team.validate()?;
         if self.sim_keyframes.every == 0 {
             bail!("sim_keyframes.every must be >= 1");
