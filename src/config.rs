@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use doorslam_backend::service::BackendSection;
 use doorslam_camera::CameraConfig;
+use doorslam_frontend::service::FrontendSection;
 use serde::Deserialize;
 
 /// The whole file. Unknown sections or keys are errors: a typo must not be silently ignored.
@@ -17,6 +18,8 @@ pub struct RobotConfig {
     pub camera: CameraConfig,
     #[serde(default)]
     pub backend: BackendSection,
+    #[serde(default)]
+    pub frontend: FrontendSection,
     #[serde(default)]
     pub sim_keyframes: SimKeyframesSection,
     #[serde(default)]
@@ -57,9 +60,7 @@ pub struct UpSection {
 }
 
 fn default_services() -> Vec<String> {
-    ["backend", "sim-keyframes", "camera"]
-        .map(String::from)
-        .to_vec()
+    ["backend", "frontend", "camera"].map(String::from).to_vec()
 }
 
 impl Default for UpSection {
@@ -108,25 +109,21 @@ impl RobotConfig {
         Ok(config)
     }
 
-    /// The robot's stereo calibration: `[rendezvous] calibration` if set, else the
-    /// replayed dataset's (`[camera.replay] path`).
+    /// The robot's rectified stereo calibration, as the front-end resolves it
+    /// (`[frontend] calibration`, else the replayed dataset's): verification at a
+    /// rendezvous must use the camera model the keyframes were made with.
     pub fn calibration(&self) -> Result<doorslam_dataset::StereoCalibration> {
-        if let Some(path) = &self.rendezvous.calibration {
-            return doorslam_dataset::StereoCalibration::from_kitti(path)
-                .with_context(|| format!("rendezvous.calibration = {}", path.display()));
-        }
-        match (&self.camera.source, &self.camera.replay) {
-            (doorslam_camera::CameraSource::Replay, Some(replay)) => {
-                doorslam_dataset::Dataset::open(&replay.path)
-                    .and_then(|d| d.calibration())
-                    .with_context(|| {
-                        format!("calibration of the replayed dataset {}", replay.path.display())
-                    })
-            }
-            _ => bail!(
-                "no stereo calibration: set rendezvous.calibration (a KITTI calib.txt) or replay a dataset"
-            ),
-        }
+        let camera = &self.camera;
+        let replay = match (camera.source, &camera.replay) {
+            (doorslam_camera::CameraSource::Replay, Some(r)) => Some(r.path.as_path()),
+            _ => None,
+        };
+        let source = self
+            .frontend
+            .calibration_source(replay, [camera.width, camera.height])?;
+        let c = doorslam_frontend::service::Calibration::load(&source)
+            .with_context(|| format!("the stereo calibration ({source})"))?;
+        Ok(c.stereo)
     }
 
     /// The config at `path`, or the built-in defaults when no file is given.
@@ -148,6 +145,7 @@ impl RobotConfig {
         }
         self.camera.validate()?;
         self.backend.validate()?;
+        self.frontend.validate()?;
         self.team.validate()?;
         self.rendezvous.validate().map_err(anyhow::Error::msg)?;
         if self.sim_keyframes.every == 0 {

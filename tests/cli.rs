@@ -34,10 +34,7 @@ fn help_lists_every_subcommand() {
 
 #[test]
 fn unfinished_commands_fail_clearly_without_panicking() {
-    let pending = [
-        (vec!["service", "frontend"], "front-end"),
-        (vec!["service", "place-recognition"], "place-recognition"),
-    ];
+    let pending = [(vec!["service", "place-recognition"], "place-recognition")];
     for (args, issue) in pending {
         let out = doorslam(&args);
         let err = stderr(&out);
@@ -719,4 +716,36 @@ fn place_eval_prints_the_documented_fields_and_names_a_missing_model() {
         "{json}"
     );
     assert!(std::fs::read_to_string(&svg).unwrap().contains("<polyline"));
+}
+
+#[test]
+fn frontend_service_names_a_missing_or_bad_calibration_and_unknown_keys() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("robot.toml");
+    let run = |toml: &str| {
+        std::fs::write(&cfg, toml).unwrap();
+        let out = doorslam(&["service", "frontend", "--config", cfg.to_str().unwrap()]);
+        let err = stderr(&out);
+        assert_eq!(out.status.code(), Some(1), "{toml}: {err}");
+        assert!(!err.contains("panicked"), "{err}");
+        err
+    };
+    // A camera, no calibration: say which key to set.
+    let err = run("[robot]\nid = \"a\"\n");
+    assert!(err.contains("frontend.calibration"), "{err}");
+    let calib = dir.path().join("calib.txt");
+    std::fs::write(&calib, "P0: 700 0 300 0 0 700 200 0 0 0 1 0\n").unwrap();
+    let err = run(&format!(
+        "[frontend]\ncalibration = \"{}\"\nimage_size = [640, 480]\n",
+        calib.display()
+    ));
+    assert!(err.contains("calib.txt") && err.contains("P1"), "{err}");
+    let err = run("[frontend]\nmax_featurs = 10\n");
+    assert!(
+        err.contains("robot.toml") && err.contains("max_featurs"),
+        "{err}"
+    );
+    // A replay of a folder that is no dataset: the folder is named.
+    let err = run("[camera]\nsource = \"replay\"\n[camera.replay]\npath = \"/nonexistent/seq\"\n");
+    assert!(err.contains("/nonexistent/seq"), "{err}");
 }

@@ -32,7 +32,8 @@ fn units_pass_systemd_analyze_verify() {
         std::fs::write(&out, text).unwrap();
         units.push(out);
     }
-    assert!(units.len() >= 4, "expected the target and three services");
+    assert!(units.len() >= 5, "expected the target and four services");
+    assert_start_order(src);
     let out = Command::new("systemd-analyze")
         .arg("verify")
         .arg("--man=no")
@@ -48,5 +49,40 @@ fn units_pass_systemd_analyze_verify() {
     assert!(
         out.status.success() && ours.is_empty(),
         "systemd-analyze verify:\n{stderr}"
+    );
+}
+
+/// The robot's pipeline starts consumers first: backend, then frontend (it feeds the
+/// back-end), then the camera (frames are lossy: nobody should miss the first ones); the
+/// target starts all three, and the test stand-in never runs beside the real front-end.
+fn assert_start_order(dir: &str) {
+    let unit = |name: &str| std::fs::read_to_string(format!("{dir}/{name}")).unwrap();
+    let key = |text: &str, key: &str| -> Vec<String> {
+        text.lines()
+            .filter_map(|l| l.strip_prefix(key)?.strip_prefix('='))
+            .flat_map(|v| v.split_whitespace().map(String::from))
+            .collect()
+    };
+    let frontend = unit("doorslam-frontend.service");
+    assert!(frontend.contains("ExecStart=/usr/local/bin/doorslam service frontend "));
+    assert!(key(&frontend, "After").contains(&"doorslam-backend.service".into()));
+    assert!(key(&frontend, "Conflicts").contains(&"doorslam-sim-keyframes.service".into()));
+    let camera = unit("doorslam-camera.service");
+    for first in ["doorslam-backend.service", "doorslam-frontend.service"] {
+        assert!(
+            key(&camera, "After").contains(&first.into()),
+            "camera after {first}"
+        );
+    }
+    let target = unit("doorslam.target");
+    for service in ["backend", "frontend", "camera"] {
+        assert!(
+            key(&target, "Wants").contains(&format!("doorslam-{service}.service")),
+            "doorslam.target wants {service}"
+        );
+    }
+    assert!(
+        !key(&target, "Wants").contains(&"doorslam-sim-keyframes.service".into()),
+        "the stand-in is not part of the robot"
     );
 }

@@ -306,6 +306,21 @@ pub struct Keyframe {
     pub features: [Feature; MAX_KEYFRAME_FEATURES],
 }
 
+impl Keyframe {
+    /// Zeroes a loaned keyframe sample in place and hands it out to be filled field by
+    /// field: a producer never builds the 52 kB value on its stack and copies it in. All
+    /// fields are plain numbers, so all-zero bytes are a valid keyframe (no features).
+    pub fn zeroed_in(slot: &mut MaybeUninit<Keyframe>) -> &mut Keyframe {
+        // SAFETY: `slot` is valid for one Keyframe; every field of Keyframe (and of Feature)
+        // is an integer, a float or an array of them, for which the all-zero bit pattern
+        // is a valid value, so after write_bytes the value is fully initialized.
+        unsafe {
+            core::ptr::write_bytes(slot.as_mut_ptr(), 0, 1);
+            slot.assume_init_mut()
+        }
+    }
+}
+
 /// Relative pose between two keyframes of one robot, information rotation-first
 /// (upper triangle, row-major, 21 values).
 #[repr(C)]
@@ -484,3 +499,21 @@ impl WireEnvelope {
 const _: () = assert!(core::mem::size_of::<Feature>() == 52);
 const _: () = assert!(core::mem::size_of::<Keyframe>() == 96 + 52 * MAX_KEYFRAME_FEATURES);
 const _: () = assert!(core::mem::size_of::<OdometryEdge>() == 32 + 8 * 28);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keyframe_zeroed_in_place_over_garbage() {
+        // A loaned sample holds whatever the last user left: all 0xFF here.
+        let mut slot = Box::new(MaybeUninit::<Keyframe>::uninit());
+        // SAFETY: writing bytes into the MaybeUninit's own storage.
+        unsafe { core::ptr::write_bytes(slot.as_mut_ptr(), 0xFF, 1) };
+        let kf = Keyframe::zeroed_in(&mut slot);
+        assert_eq!((kf.id, kf.n_features, kf.pose), (0, 0, [0.0; 7]));
+        assert!(kf.features.iter().all(|f| *f == Feature::default()));
+        kf.features[3].uv = [1.5, 2.5];
+        assert_eq!(kf.features[3].uv, [1.5, 2.5]);
+    }
+}

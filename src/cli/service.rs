@@ -5,6 +5,8 @@ use std::path::PathBuf;
 use anyhow::{bail, Result};
 use clap::{Args, ValueEnum};
 
+use doorslam_camera::CameraSource;
+
 use crate::config::RobotConfig;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -45,9 +47,21 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             doorslam_hil::sim_keyframes::run(&c)?;
             Ok(())
         }
-        ServiceName::Frontend => bail!(
-            "service frontend is not built yet: it arrives with the front-end VO issue (next wave)"
-        ),
+        ServiceName::Frontend => {
+            let camera = &config.camera;
+            let replay = match (camera.source, &camera.replay) {
+                (CameraSource::Replay, Some(r)) => Some(r.path.as_path()),
+                _ => None,
+            };
+            let c = config.frontend.for_robot(
+                &config.robot.id,
+                config.robot.index,
+                replay,
+                [camera.width, camera.height],
+            )?;
+            doorslam_frontend::service::run(&c)?;
+            Ok(())
+        }
         ServiceName::PlaceRecognition => {
             bail!("service place-recognition is not built yet: it arrives with the place-recognition issue (next wave)")
         }

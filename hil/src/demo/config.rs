@@ -325,6 +325,9 @@ start_unix_ms = {start_unix_ms}
     let _ = write!(
         t,
         r#"
+[frontend]
+run_dir = "{out}"
+
 [backend]
 state_dir = "{out}"
 optimize_every = 10

@@ -1,6 +1,7 @@
 //! Tuning of the stereo visual odometry, with serde defaults (a `[frontend]` table of
 //! robot.toml may set any subset of the fields).
 
+use doorslam_geometry::TangentMatrix;
 use serde::{Deserialize, Serialize};
 
 /// Which detector finds the left image's keypoints; descriptors are always 32-byte ORB.
@@ -256,5 +257,23 @@ impl VoConfig {
             ));
         }
         Ok(())
+    }
+}
+
+impl VoConfig {
+    /// Information of the weak prior that links a new segment to the previous one after
+    /// `seconds_lost` (at least one second): the standard deviations grow with the time.
+    pub fn segment_prior_information(&self, seconds_lost: f64) -> TangentMatrix {
+        let dt = seconds_lost.max(1.0);
+        let (sr, st) = (
+            self.segment_prior_rotation_sigma * dt,
+            self.segment_prior_translation_sigma_m * dt,
+        );
+        let mut information = TangentMatrix::zeros();
+        for k in 0..3 {
+            information[(k, k)] = 1.0 / (sr * sr);
+            information[(k + 3, k + 3)] = 1.0 / (st * st);
+        }
+        information
     }
 }

@@ -9,13 +9,16 @@
 //! - [`vo`]: the odometry ([`StereoVo`]): tracking, keyframes, lost / re-init / segments;
 //! - [`keyframe`]: its outputs, the contract for downstream services;
 //! - [`verify`]: geometric verification of loop-closure candidates (PnP-RANSAC);
-//! - [`run`]: the odometry over a dataset folder, with timing and drift.
+//! - [`run`]: the odometry over a dataset folder, with timing and drift;
+//! - [`service`]: the robot's `frontend` service: frames in, keyframes and odometry edges
+//!   out over iceoryx2, lost / segments / restarts, status.
 
 pub mod config;
 pub mod features;
 pub mod keyframe;
 pub mod refine;
 pub mod run;
+pub mod service;
 pub mod stereo;
 pub mod verify;
 pub mod vo;

@@ -114,7 +114,7 @@ pub fn run_dataset(
 }
 
 /// CPU time consumed by the calling thread (s), 0 if the clock is unavailable.
-fn thread_cpu_s() -> f64 {
+pub(crate) fn thread_cpu_s() -> f64 {
     let mut ts = libc::timespec {
         tv_sec: 0,
         tv_nsec: 0,

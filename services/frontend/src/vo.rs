@@ -8,7 +8,7 @@ use opencv::core::{Mat, Point2f, Point3f, Vector};
 use opencv::prelude::*;
 
 use doorslam_dataset::StereoCalibration;
-use doorslam_geometry::{LieGroup, Tangent, TangentMatrix, SE3, SO3};
+use doorslam_geometry::{LieGroup, Tangent, SE3, SO3};
 
 use crate::config::VoConfig;
 use crate::features::FrontendError;
@@ -322,23 +322,13 @@ impl StereoVo {
             self.stats.segments -= 1;
             return self.lost_frame(frame, LostReason::TooFewPoints { points });
         };
-        let link = self.last_good.take().map(|g| {
-            let dt = seconds(g.stamp_ns, stamp_ns).max(1.0);
-            let (sr, st) = (
-                self.config.segment_prior_rotation_sigma * dt,
-                self.config.segment_prior_translation_sigma_m * dt,
-            );
-            let mut information = TangentMatrix::zeros();
-            for k in 0..3 {
-                information[(k, k)] = 1.0 / (sr * sr);
-                information[(k + 3, k + 3)] = 1.0 / (st * st);
-            }
-            SegmentLink {
-                from: g.keyframe,
-                to: keyframe.id,
-                relative: g.keyframe_pose.inverse() * pose,
-                information,
-            }
+        let link = self.last_good.take().map(|g| SegmentLink {
+            from: g.keyframe,
+            to: keyframe.id,
+            relative: g.keyframe_pose.inverse() * pose,
+            information: self
+                .config
+                .segment_prior_information(seconds(g.stamp_ns, stamp_ns)),
         });
         tracing::info!(
             frame,

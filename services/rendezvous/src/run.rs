@@ -184,11 +184,7 @@ pub fn run(
 #[derive(Debug, Clone, PartialEq, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RendezvousSection {
-    /// The stereo calibration (KITTI `calib.txt`, as the simulator writes it too);
-    /// default: the replayed dataset's (`[camera.replay] path`).
-    #[serde(default)]
-    pub calibration: Option<std::path::PathBuf>,
-    /// See [`MatchSettings`].
+    /// See [`MatchSettings`]. (The calibration is the front-end's: `[frontend]`.)
     #[serde(default = "default_threshold")]
     pub match_threshold: f32,
     #[serde(default = "default_candidates")]
@@ -212,7 +208,6 @@ fn default_packet() -> usize {
 impl Default for RendezvousSection {
     fn default() -> Self {
         Self {
-            calibration: None,
             match_threshold: default_threshold(),
             max_candidates: default_candidates(),
             max_packet_features: default_packet(),

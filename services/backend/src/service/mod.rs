@@ -1,7 +1,8 @@
 //! The back-end service of one robot: receives keyframes and odometry edges over iceoryx2,
 //! checks each one ([`input`]), journals it (fsync) before applying it, keeps the pose
-//! graph, re-optimizes it warm-started every few keyframes and publishes the latest pose
-//! estimate.
+//! graph, re-optimizes it warm-started every few keyframes, publishes the latest pose
+//! estimate and writes the whole estimate to `<state_dir>/<robot>/trajectory.tum`
+//! ([`trajectory`]).
 //!
 //! All decisions live in the plain state machine [`state::BackendState`]; this loop only
 //! moves samples in and out. Ordering: keyframe ids should arrive consecutively. A
@@ -18,6 +19,7 @@ pub mod input;
 pub mod output;
 pub mod state;
 pub mod team;
+pub mod trajectory;
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -364,6 +366,7 @@ pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
         state = state.with_team(TeamBridge::new(robot, id, epoch, options.clone()));
     }
     let path = config.state_dir.join("backend.journal");
+    let trajectory_path = config.state_dir.join("trajectory.tum");
     let (mut journal, recovery) = Journal::open(&path, &config.robot)?;
     state.recover(&recovery);
     log_recovery(&path, &recovery, state.report());
@@ -424,11 +427,16 @@ pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
         }
         if progressed && state.optimization_due() {
             match state.optimize() {
-                Ok(s) => tracing::info!(
-                    poses = state.graph().len(),
-                    chi2 = s.final_chi2,
-                    "backend: optimized"
-                ),
+                Ok(s) => {
+                    tracing::info!(
+                        poses = state.graph().len(),
+                        chi2 = s.final_chi2,
+                        "backend: optimized"
+                    );
+                    if let Err(e) = trajectory::write_tum(&trajectory_path, state.trajectory()) {
+                        tracing::warn!(path = %trajectory_path.display(), "backend: cannot write the trajectory: {e}");
+                    }
+                }
                 Err(e) => tracing::warn!("backend: optimization skipped: {e}"),
             }
             if let Some((keyframe, pose)) = state.latest_estimate() {

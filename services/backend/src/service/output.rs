@@ -18,12 +18,13 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use doorslam_geometry::{key, SE3};
+use doorslam_geometry::key;
 use serde::Serialize;
 
 use super::state::{BackendReport, BackendState};
 use crate::g2o::{se3_edge_line, se3_vertex_line};
 use super::team::BridgeStats;
+use super::trajectory::tum_text;
 use super::ServiceError;
 
 /// The output files of one back-end.
@@ -108,24 +109,6 @@ fn letter(r: u8) -> String {
     }
 }
 
-/// One TUM line.
-fn tum_line(out: &mut String, stamp_ns: u64, p: &SE3) {
-    let t = p.translation.vector;
-    let q = p.rotation.quaternion();
-    let _ = writeln!(
-        out,
-        "{:.9} {:.6} {:.6} {:.6} {:.9} {:.9} {:.9} {:.9}",
-        stamp_ns as f64 * 1e-9,
-        t.x,
-        t.y,
-        t.z,
-        q.i,
-        q.j,
-        q.k,
-        q.w
-    );
-}
-
 impl Outputs {
     pub fn new(dir: &Path) -> Self {
         Self {
@@ -181,10 +164,7 @@ impl Outputs {
     /// Writes the three files.
     pub fn write(&self, state: &BackendState) -> Result<(), ServiceError> {
         let received = state.received_poses();
-        let mut odometry = String::new();
-        for (stamp, pose) in received.values() {
-            tum_line(&mut odometry, *stamp, pose);
-        }
+        let odometry = tum_text(received.iter().map(|(id, (stamp, pose))| (*id, *stamp, pose)));
         self.write_file("odometry.tum", &odometry)?;
         let mut ids = String::from("id,stamp_ns\n");
         for (id, (stamp, _)) in received {
@@ -192,12 +172,10 @@ impl Outputs {
         }
         self.write_file("keyframes.csv", &ids)?;
         if let Some(bridge) = state.team() {
-            let mut team = String::new();
-            for (k, pose) in bridge.estimate() {
-                if let Some((stamp, _)) = received.get(&key::index(k)) {
-                    tum_line(&mut team, *stamp, pose);
-                }
-            }
+            let team = tum_text(bridge.estimate().filter_map(|(k, pose)| {
+                let id = key::index(k);
+                received.get(&id).map(|(stamp, _)| (id, *stamp, pose))
+            }));
             self.write_file("team_estimate.tum", &team)?;
         }
         let mut g2o = String::new();

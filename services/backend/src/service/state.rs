@@ -93,6 +93,8 @@ pub struct BackendState {
     robot_index: u32,
     optimize_every: usize,
     graph: PoseGraph<SE3>,
+    /// Stamp of each keyframe, by its index in the graph.
+    stamps: Vec<u64>,
     next_id: Option<u64>,
     /// Odometry edges in the graph, by (from, to) keyframe id.
     odometry: HashSet<(u64, u64)>,
@@ -120,6 +122,7 @@ impl BackendState {
             robot_index,
             optimize_every: optimize_every.max(1),
             graph: PoseGraph::new(),
+            stamps: Vec::new(),
             next_id: None,
             odometry: HashSet::new(),
             pending: VecDeque::new(),
@@ -403,6 +406,16 @@ impl BackendState {
         Some((key::index(k), *p))
     }
 
+    /// Every keyframe's id, stamp and current estimate, in the order they arrived.
+    pub fn trajectory(&self) -> impl Iterator<Item = (u64, u64, &SE3)> {
+        self.graph
+            .keys()
+            .iter()
+            .zip(&self.stamps)
+            .zip(self.graph.poses())
+            .map(|((&k, &stamp_ns), pose)| (key::index(k), stamp_ns, pose))
+    }
+
     fn rejected(&mut self, e: InputError) -> Outcome {
         self.report.rejected += 1;
         Outcome::Rejected(e)
@@ -410,7 +423,9 @@ impl BackendState {
 
     fn insert_keyframe(&mut self, input: &KeyframeInput) {
         let k = self.key(input.id);
-        self.graph.add_pose(k, input.pose);
+        let i = self.graph.add_pose(k, input.pose);
+        self.stamps.resize(self.stamps.len().max(i + 1), 0);
+        self.stamps[i] = input.stamp_ns;
         self.received.insert(input.id, (input.stamp_ns, input.pose));
         self.next_id = Some(self.next_id.map_or(input.id + 1, |n| n.max(input.id + 1)));
         if let Some(team) = self.team.as_mut() {
