@@ -14,7 +14,9 @@ use crate::config::VoConfig;
 use crate::features::FrontendError;
 use crate::keyframe::{Feature, Keyframe, OdometryEdge, SegmentLink};
 use crate::refine::{refine, Correspondence, Noise};
-use crate::stereo::{triangulate, triangulation_jacobian, Extractor, FrameFeatures, Gray};
+use crate::stereo::{
+    triangulate, triangulation_jacobian, Extractor, FrameFeature, FrameFeatures, Gray,
+};
 
 fn cv(op: &'static str) -> impl FnOnce(opencv::Error) -> FrontendError {
     move |source| FrontendError::OpenCv { op, source }
@@ -255,11 +257,7 @@ impl StereoVo {
         pose: SE3,
         features: &FrameFeatures,
     ) -> Option<(ActiveKeyframe, Keyframe)> {
-        let stereo: Vec<_> = features
-            .features
-            .iter()
-            .filter_map(|f| f.disparity.map(|d| (f, d as f64)))
-            .collect();
+        let stereo = stereo_points(features);
         if stereo.len() < self.config.min_keyframe_points {
             return None;
         }
@@ -274,22 +272,14 @@ impl StereoVo {
             pixels: Vec::with_capacity(stereo.len()),
             descriptors: Vec::with_capacity(stereo.len()),
         };
-        let mut out = Vec::with_capacity(stereo.len());
-        for (f, d) in stereo {
+        for &(f, d) in &stereo {
             let (u, v) = (f.pixel[0] as f64, f.pixel[1] as f64);
-            let p = triangulate(&self.calib, u, v, d);
-            active.points.push(p.coords);
+            active.points.push(triangulate(&self.calib, u, v, d).coords);
             active
                 .point_jacobians
                 .push(triangulation_jacobian(&self.calib, u, v, d));
             active.pixels.push(f.pixel);
             active.descriptors.push(f.descriptor);
-            out.push(Feature {
-                pixel: f.pixel,
-                descriptor: f.descriptor,
-                point: [p.x as f32, p.y as f32, p.z as f32],
-                depth_sigma_m: (p.z / d * self.config.disparity_sigma_px) as f32,
-            });
         }
         let keyframe = Keyframe {
             id,
@@ -297,9 +287,24 @@ impl StereoVo {
             frame,
             stamp_ns,
             pose,
-            features: out,
+            features: keyframe_features(&self.calib, &self.config, &stereo),
         };
         Some((active, keyframe))
+    }
+
+    /// The features a keyframe made of this pair would carry (strongest first), without
+    /// touching the odometry's state: for verifying arbitrary frames (benchmarks, tools).
+    pub fn keyframe_features(
+        &mut self,
+        left: &Gray<'_>,
+        right: &Gray<'_>,
+    ) -> Result<Vec<Feature>, FrontendError> {
+        let features = self.extractor.extract(left, right)?;
+        Ok(keyframe_features(
+            &self.calib,
+            &self.config,
+            &stereo_points(&features),
+        ))
     }
 
     fn initialize(&mut self, frame: u64, stamp_ns: u64, features: &FrameFeatures) -> FrameResult {
@@ -423,6 +428,10 @@ impl StereoVo {
         let noise = Noise {
             pixel_sigma_px: self.config.pixel_sigma_px,
             disparity_sigma_px: self.config.disparity_sigma_px,
+            posterior_variance: self.config.posterior_variance,
+            scale_sigma: self.config.scale_sigma,
+            rotation_sigma_rad: self.config.rotation_sigma_deg.to_radians(),
+            translation_sigma_m: self.config.translation_sigma_m,
         };
         let Some(refined) = refine(
             &self.calib,
@@ -497,6 +506,38 @@ impl StereoVo {
         track.velocity = velocity;
         result
     }
+}
+
+/// The features of a frame that have a disparity, strongest first (the order keyframes
+/// keep, so the first N of a keyframe are its best).
+fn stereo_points(features: &FrameFeatures) -> Vec<(&FrameFeature, f64)> {
+    let mut stereo: Vec<_> = features
+        .features
+        .iter()
+        .filter_map(|f| f.disparity.map(|d| (f, d as f64)))
+        .collect();
+    stereo.sort_by(|a, b| b.0.response.total_cmp(&a.0.response));
+    stereo
+}
+
+/// Keyframe features of stereo points: each triangulated, with its depth σ.
+fn keyframe_features(
+    calib: &StereoCalibration,
+    config: &VoConfig,
+    stereo: &[(&FrameFeature, f64)],
+) -> Vec<Feature> {
+    stereo
+        .iter()
+        .map(|&(f, d)| {
+            let p = triangulate(calib, f.pixel[0] as f64, f.pixel[1] as f64, d);
+            Feature {
+                pixel: f.pixel,
+                descriptor: f.descriptor,
+                point: [p.x as f32, p.y as f32, p.z as f32],
+                depth_sigma_m: (p.z / d * config.disparity_sigma_px) as f32,
+            }
+        })
+        .collect()
 }
 
 /// Hamming distance of two 256-bit descriptors.
