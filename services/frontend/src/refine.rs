@@ -249,3 +249,42 @@ pub fn refine(
         inliers: active,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion};
+
+    #[test]
+    fn scale_uncertainty_adds_its_covariance_along_the_translation() {
+        let pose = SE3::from_parts(
+            Translation3::new(0.3, -0.1, 1.5),
+            UnitQuaternion::from_euler_angles(0.1, -0.2, 0.05),
+        );
+        let mut information = TangentMatrix::identity() * 1e4;
+        information[(0, 4)] = 20.0;
+        information[(4, 0)] = 20.0;
+        let sigma = 0.01;
+        let updated = with_scale_uncertainty(&information, &pose, sigma).unwrap();
+        // (Ω⁻¹ + u uᵀ)⁻¹ with u = σ (0, Rᵀt).
+        let mut u = Tangent::zeros();
+        u.fixed_rows_mut::<3>(3)
+            .copy_from(&(pose.rotation.inverse() * pose.translation.vector * sigma));
+        let want = (information.try_inverse().unwrap() + u * u.transpose())
+            .try_inverse()
+            .unwrap();
+        assert!(
+            (updated - want).amax() < 1e-6 * want.amax(),
+            "{updated}\n{want}"
+        );
+        // Only the direction of the translation loses information.
+        let along = u.normalize();
+        assert!(
+            (along.transpose() * updated * along)[0] < (along.transpose() * information * along)[0]
+        );
+        // A rotation axis that nothing couples to the translation keeps all of it.
+        let mut across = Tangent::zeros();
+        across[1] = 1.0;
+        assert!(((across.transpose() * updated * across)[0] - 1e4).abs() < 1e-6);
+    }
+}
