@@ -15,8 +15,9 @@ fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
-const SUBCOMMANDS: [&str; 12] = [
+const SUBCOMMANDS: [&str; 13] = [
     "service", "up", "pgo", "pcm", "dpgo", "eval", "sim", "replay", "bw", "demo", "vo", "place",
+    "verify",
 ];
 
 #[test]
@@ -634,10 +635,47 @@ fn vo_on_the_kitti_06_clip_prints_the_documented_fields_and_a_file_eval_reads() 
 }
 
 #[test]
-fn vo_refuses_unrectified_euroc_and_missing_folders_by_name() {
-    let out = doorslam(&["vo", &data("stereo/euroc_v101_micro"), "--json"]);
+fn vo_runs_on_euroc_writes_keyframe_packets_and_verify_reads_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let kfs = dir.path().join("kf");
+    let out = doorslam(&[
+        "vo",
+        &data("stereo/euroc_v101_micro"),
+        "--json",
+        "--keyframes",
+        kfs.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["frames"], 30, "{v}");
+    assert_eq!(
+        (v["lost"].as_u64(), v["segments"].as_u64()),
+        (Some(0), Some(1)),
+        "{v}"
+    );
+    let bytes = v["keyframe_packet_bytes_mean"].as_f64().unwrap();
+    assert!(bytes > 5_000.0 && bytes <= 20_000.0, "{v}");
+    let index = std::fs::read_to_string(kfs.join("keyframes.txt")).unwrap();
+    assert_eq!(
+        index.lines().count() as u64,
+        v["keyframes"].as_u64().unwrap()
+    );
+    // The static MAV: the first keyframe against itself is the identity.
+    let a = kfs.join("kf_000000.bin");
+    let out = doorslam(&["verify", a.to_str().unwrap(), a.to_str().unwrap(), "--json"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(r["accepted"], true, "{r}");
+    assert!(r["distance_m"].as_f64().unwrap() < 0.01, "{r}");
+    assert!(r["rotation_deg"].as_f64().unwrap() < 0.1, "{r}");
+    // A file that is not a packet, and a missing one, are named.
+    let junk = dir.path().join("junk.bin");
+    std::fs::write(&junk, b"not a packet").unwrap();
+    let out = doorslam(&["verify", a.to_str().unwrap(), junk.to_str().unwrap()]);
     assert!(!out.status.success());
-    assert!(stderr(&out).contains("not rectified"), "{}", stderr(&out));
+    assert!(stderr(&out).contains("junk.bin"), "{}", stderr(&out));
+    let out = doorslam(&["verify", a.to_str().unwrap(), "/no/such.bin"]);
+    assert!(!out.status.success() && stderr(&out).contains("/no/such.bin"));
     let out = doorslam(&["vo", "/nonexistent/flight"]);
     assert!(!out.status.success());
     assert!(

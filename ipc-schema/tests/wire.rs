@@ -7,7 +7,6 @@ use std::cell::Cell;
 use doorslam_geometry::information::upper_from_diagonal;
 use doorslam_geometry::key::symbol;
 use doorslam_ipc::wire::*;
-use doorslam_ipc::Feature;
 use proptest::prelude::*;
 
 // ---- allocation accounting: bytes allocated by this thread ----
@@ -88,12 +87,16 @@ fn descriptor(index: u64) -> Descriptor {
 }
 
 fn feature(i: usize) -> VerificationFeature {
-    VerificationFeature::quantize(&Feature {
-        uv: [100.5 + i as f32, 200.25],
-        point: [0.5, -0.25, 4.0 + i as f32 * 0.01],
-        descriptor: std::array::from_fn(|b| (b + i) as u8),
-    })
+    VerificationFeature::quantize(
+        [100.5 + i as f32, 200.25],
+        12.5 + i as f32 / 64.0,
+        std::array::from_fn(|b| (b + i) as u8),
+    )
     .unwrap()
+}
+
+fn camera() -> VerificationCamera {
+    VerificationCamera::new(458.5, 457.25, 367.0, 248.5, 0.11).unwrap()
 }
 
 fn closure(i: u64) -> LoopClosure {
@@ -132,6 +135,7 @@ fn samples() -> Vec<Message> {
             header("bravo", 3),
             VerificationFeatures {
                 key: key(1, 300),
+                camera: camera(),
                 features: vec![feature(0)],
             },
         ),
@@ -185,42 +189,43 @@ fn hex(b: &[u8]) -> String {
     b.iter().map(|x| format!("{x:02x}")).collect()
 }
 
-// The hello, in full: version 1, kind 1, sender "alpha" (5 bytes), epoch 3, sequence 0,
+// The hello, in full: version 2, kind 1, sender "alpha" (5 bytes), epoch 3, sequence 0,
 // robot 0. The descriptor and feature payloads are long, so those pins cover everything.
 const PINNED: [&str; 8] = [
     // hello (11 bytes)
-    "010105616c706861030000",
+    "020105616c706861030000",
     // descriptors (147 bytes)
     concat!(
-        "010205616c706861030100050401025ce3803a4317e8bd9a86818fabd3012f56727f7a654216e7bc",
+        "020205616c706861030100050401025ce3803a4317e8bd9a86818fabd3012f56727f7a654216e7bc",
         "9a85828facd4023057737f7a644115e6bb9985828facd4033058737f79644014e6ba99858290add5",
         "033158737f79634014e5ba98858290aed6043259747f79633f13e4b998848291aed7053359747f79",
         "623e12e3b897848291afd806345a747f78613d11e2b897848291b0",
     ),
     // matches (20 bytes)
-    "010305627261766f030201000701ac020000003e",
-    // verification features (56 bytes)
+    "020305627261766f030201000701ac020000003e",
+    // verification features (72 bytes: the camera's five f32, then one feature: pixel
+    // (1608, 3204) sixteenths, disparity 800 sixty-fourths, descriptor 0..31)
     concat!(
-        "010405627261766f030301ac02014806840c000102030405060708090a0b0c0d0e0f101112131415",
-        "161718191a1b1c1d1e1f003800b40044",
+        "020405627261766f030301ac020040e54300a0e4430080b74300807843ae47e13d014806840c2003",
+        "000102030405060708090a0b0c0d0e0f101112131415161718191a1b1c1d1e1f",
     ),
     // loop closures (90 bytes)
     concat!(
-        "010505616c7068610304010078012d0000c03f000080be0000003e0000000000000000f304353ff3",
+        "020505616c7068610304010078012d0000c03f000080be0000003e0000000000000000f304353ff3",
         "04353f0000c842003c0000003c00000000003c000000000000663200000000000000006632000000",
         "00000000000000663225",
     ),
     // pose estimates (50 bytes: two compact poses, the second key as a gap of 1)
     concat!(
-        "010605616c706861030502090101000002",
+        "020605616c706861030502090101000002",
         "78a09c01c0b802b7170300000000ff7f",
         "0188a401c0b802b7170300000000ff7f",
     ),
     // ack (16 bytes)
-    "010705627261766f0306030205010202",
+    "020705627261766f0306030205010202",
     // separator graph (92 bytes: origin 1, version 4, then the closure as above)
     concat!(
-        "010805616c70686103070104",
+        "020805616c70686103070104",
         "010078012d0000c03f000080be0000003e0000000000000000f304353ff3",
         "04353f0000c842003c0000003c00000000003c000000000000663200000000000000006632000000",
         "00000000000000663225",
@@ -246,7 +251,7 @@ fn pinned_bytes_of_each_kind() {
     }
     assert_eq!(
         samples[0].encode().unwrap(),
-        [1, 1, 5, b'a', b'l', b'p', b'h', b'a', 3, 0, 0]
+        [2, 1, 5, b'a', b'l', b'p', b'h', b'a', 3, 0, 0]
     );
 }
 
@@ -272,9 +277,31 @@ fn quantized_values_stay_close() {
         .map(|(a, b)| (a - b).abs())
         .fold(0f32, f32::max);
     assert!(err <= d.scale / 2.0 + 1e-7, "descriptor error {err}");
-    let f = feature(3).to_feature();
-    assert_eq!(f.uv, [103.5, 200.25]);
-    assert!((f.point[2] - 4.03).abs() < 4.03 / 2048.0);
+    let f = feature(3);
+    assert_eq!(f.pixel_px(), [103.5, 200.25]);
+    assert_eq!(f.disparity_px(), 12.5 + 3.0 / 64.0);
+    let g = VerificationFeature::quantize([10.01, 20.02], 7.003, [0; 32]).unwrap();
+    assert!((g.pixel_px()[0] - 10.01).abs() <= 1.0 / 32.0);
+    assert!((g.pixel_px()[1] - 20.02).abs() <= 1.0 / 32.0);
+    assert!((g.disparity_px() - 7.003).abs() <= 1.0 / 128.0);
+    // Out of range or not finite: refused, naming the field.
+    for (pixel, d) in [
+        ([-1.0, 5.0], 3.0),
+        ([5.0, 4096.0], 3.0),
+        ([5.0, 5.0], 0.001),
+        ([5.0, 5.0], 1024.0),
+        ([f32::NAN, 5.0], 3.0),
+    ] {
+        let e = VerificationFeature::quantize(pixel, d, [0; 32]).unwrap_err();
+        assert!(e.to_string().contains("feature"), "{e}");
+    }
+    for bad in [
+        VerificationCamera::new(0.0, 1.0, 1.0, 1.0, 0.1),
+        VerificationCamera::new(1.0, 1.0, f32::NAN, 1.0, 0.1),
+        VerificationCamera::new(1.0, 1.0, 1.0, 1.0, -0.1),
+    ] {
+        assert!(bad.is_err(), "{bad:?}");
+    }
     let info = information();
     let want = doorslam_geometry::information::matrix_from_upper(&upper_from_diagonal([
         1e4, 1e4, 1e4, 400.0, 400.0, 400.0,
@@ -384,22 +411,42 @@ fn sizes_against_the_targets() {
         closures(&"x".repeat(32), 5).div_ceil(5),
         100,
     );
-    // Verification packets: 42 bytes per feature. The 32-byte ORB descriptors alone of
-    // 1000 features are 32 kB, so 1000 features cannot fit 20 kB: they take 42 kB (the
-    // paper's packet was 59.5 kB); 20 kB holds 475 features.
-    let packet = |n: usize| {
+    // Verification packets: 38 bytes per feature after a 20-byte camera. The 32-byte ORB
+    // descriptors alone of 1000 features are 32 kB, so 1000 features cannot fit 20 kB;
+    // the front-end sends its best 500: 19.1 kB at most, with the longest sender id, the
+    // largest key and the longest varints (the paper's packet was 59.5 kB).
+    let packet = |sender: &str, sequence: u64, index: u64, n: usize| {
+        let mut h = header(sender, sequence);
+        h.epoch = u64::MAX;
         Message::new(
-            header("drone-b", 1000),
+            h,
             VerificationFeatures {
-                key: key(1, 3000),
+                key: key(25, index),
+                camera: camera(),
                 features: (0..n).map(feature).collect(),
             },
         )
         .encoded_len()
     };
-    print_size("verification packet, 1000 features", packet(1000), 42_100);
-    print_size("verification packet, 475 features", packet(475), 20_000);
-    assert_eq!(packet(1000) - packet(999), FEATURE_BYTES);
+    let longest = |n| packet(&"x".repeat(32), u64::MAX, (1 << 56) - 1, n);
+    print_size(
+        "verification packet, 500 features, worst header",
+        longest(500),
+        19_100,
+    );
+    print_size(
+        "verification packet, 500 features",
+        packet("drone-b", 1000, 3000, 500),
+        19_050,
+    );
+    print_size(
+        "verification packet, 1000 features",
+        packet("drone-b", 1000, 3000, 1000),
+        38_050,
+    );
+    assert_eq!(longest(1000) - longest(999), FEATURE_BYTES);
+    assert_eq!(FEATURE_BYTES, 38);
+    assert_eq!(VERIFICATION_CAMERA_BYTES, 20);
 }
 
 #[test]
@@ -421,18 +468,18 @@ fn truncation_trailing_version_and_kind() {
             Err(WireError::TrailingBytes { count: 1 })
         );
         let mut v2 = b.clone();
-        v2[0] = 2;
+        v2[0] = 3;
         let e = decode_bounded(&v2).unwrap_err();
         assert_eq!(
             e,
             WireError::UnknownVersion {
-                found: 2,
-                supported: 1
+                found: 3,
+                supported: 2
             }
         );
         assert_eq!(
             e.to_string(),
-            "wire version 2 is not supported (this build speaks version 1)"
+            "wire version 3 is not supported (this build speaks version 2)"
         );
         let mut k = b;
         k[1] = 0;
@@ -478,6 +525,7 @@ fn limits_are_checked_before_allocation() {
         header("bravo", 0),
         VerificationFeatures {
             key: key(1, 0),
+            camera: camera(),
             features: vec![feature(0); MAX_FEATURES + 1],
         },
     );
@@ -486,6 +534,7 @@ fn limits_are_checked_before_allocation() {
         header("bravo", 0),
         VerificationFeatures {
             key: 5,
+            camera: camera(),
             features: vec![],
         },
     );
@@ -679,14 +728,25 @@ fn arb_descriptors() -> impl Strategy<Value = Descriptors> {
 fn arb_feature() -> impl Strategy<Value = VerificationFeature> {
     (
         prop::array::uniform2(any::<u16>()),
+        1..=u16::MAX,
         prop::array::uniform32(any::<u8>()),
-        prop::array::uniform3(-200f32..200.0),
     )
-        .prop_map(|(pixel, descriptor, p)| VerificationFeature {
+        .prop_map(|(pixel, disparity, descriptor)| VerificationFeature {
             pixel,
+            disparity,
             descriptor,
-            point: p.map(f16_from_f32),
         })
+}
+
+fn arb_camera() -> impl Strategy<Value = VerificationCamera> {
+    (
+        1f32..3000.0,
+        1f32..3000.0,
+        -100f32..3000.0,
+        -100f32..3000.0,
+        0.01f32..2.0,
+    )
+        .prop_map(|(fx, fy, cx, cy, b)| VerificationCamera::new(fx, fy, cx, cy, b).unwrap())
 }
 
 fn arb_body() -> impl Strategy<Value = Body> {
@@ -705,9 +765,18 @@ fn arb_body() -> impl Strategy<Value = Body> {
                     .collect(),
             })
         }),
-        (arb_key(), prop::collection::vec(arb_feature(), 0..40)).prop_map(|(key, features)| {
-            Body::VerificationFeatures(VerificationFeatures { key, features })
-        }),
+        (
+            arb_key(),
+            arb_camera(),
+            prop::collection::vec(arb_feature(), 0..40)
+        )
+            .prop_map(|(key, camera, features)| {
+                Body::VerificationFeatures(VerificationFeatures {
+                    key,
+                    camera,
+                    features,
+                })
+            }),
         prop::collection::vec(
             (
                 arb_key(),

@@ -65,6 +65,12 @@ pub enum EvalCommand {
         #[arg(long, value_enum, default_value_t = AlignArg::Se3)]
         align: AlignArg,
     },
+    /// End-point drift: distance between the estimated and true end positions, both
+    /// trajectories taken relative to their first pose, in % of the true path length.
+    Drift {
+        #[command(flatten)]
+        common: Common,
+    },
     /// Relative pose error (translation), not aligned.
     Rpe {
         #[command(flatten)]
@@ -176,6 +182,26 @@ pub fn run(args: EvalArgs) -> Result<()> {
             };
             let ate = absolute_trajectory_error(&gt, &est, alignment)?;
             report("ate", &ate.stats, common.json);
+        }
+        EvalCommand::Drift { common } => {
+            let (gt, est) = associated(&common)?;
+            let d = doorslam_frontend::run::endpoint_drift(est.poses(), gt.poses())
+                .context("end-point drift needs two poses and a path longer than 1 cm")?;
+            if common.json {
+                println!(
+                    "{}",
+                    serde_json::json!({
+                        "distance_m": d.distance_m,
+                        "endpoint_error_m": d.endpoint_error_m,
+                        "drift_percent": d.percent,
+                    })
+                );
+            } else {
+                println!(
+                    "end-point drift {:.3} m over {:.1} m ({:.2} %)",
+                    d.endpoint_error_m, d.distance_m, d.percent
+                );
+            }
         }
         EvalCommand::Rpe {
             common,

@@ -12,6 +12,7 @@ mod replay;
 mod service;
 pub(crate) mod sim;
 mod up;
+mod verify;
 mod vo;
 
 use std::process::ExitCode;
@@ -45,8 +46,11 @@ pub enum Command {
     Place(place::PlaceArgs),
     /// Simulate worlds, flights and multi-robot pose graphs.
     Sim(sim::SimArgs),
-    /// Stereo visual odometry over a KITTI-layout folder: every frame's pose, timing, drift.
+    /// Stereo visual odometry over a KITTI or EuRoC folder: every frame's pose, timing, drift.
     Vo(vo::VoArgs),
+    /// Geometric verification of two keyframe packets (debugging), or the verification
+    /// benchmark on pairs with ground truth (--bench).
+    Verify(verify::VerifyArgs),
     /// Replay a dataset (KITTI / EuRoC layout) into the on-robot pipeline.
     Replay(replay::ReplayArgs),
     /// Measure what each inter-robot message kind costs in bytes.
@@ -80,6 +84,7 @@ pub fn main() -> ExitCode {
         Command::Place(args) => place::run(args),
         Command::Sim(args) => sim::run(args),
         Command::Vo(args) => vo::run(args),
+        Command::Verify(args) => verify::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Bw(args) => bw::run(args),
         Command::Demo(args) => demo::run(args),

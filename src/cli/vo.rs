@@ -1,18 +1,27 @@
 //! `doorslam vo DIR`: stereo visual odometry over a KITTI-layout folder (KITTI odometry or
-//! `doorslam sim world` output); writes every frame's pose in KITTI format.
+//! `doorslam sim world` output) or an EuRoC folder (rectified on the fly); writes every
+//! frame's pose in KITTI format, and with `--keyframes` each keyframe's verification packet.
 
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use doorslam_frontend::run::{edge_nees, endpoint_drift, kitti_text, quantile, run_dataset};
+use doorslam_frontend::run::{
+    edge_nees, endpoint_drift, kitti_text, quantile, run_dataset, EdgeNees,
+};
 use doorslam_frontend::{Detector, VoConfig};
 
 #[derive(Debug, Args)]
 pub struct VoArgs {
     /// Dataset folder: KITTI layout (image_0/, image_1/, calib.txt, optional times.txt and
-    /// poses.txt). EuRoC folders are refused until rectification lands.
+    /// poses.txt) or EuRoC ([mav0/]cam0/data, cam1/data, cam0/sensor.yaml, cam1/sensor.yaml:
+    /// rectified with maps computed once).
     pub dir: PathBuf,
+    /// Write each keyframe's verification packet (the wire message another robot would
+    /// receive) into this folder as kf_NNNNNN.bin, plus keyframes.txt (id frame segment
+    /// pose); `doorslam verify` reads them.
+    #[arg(long, value_name = "OUTDIR")]
+    pub keyframes: Option<PathBuf>,
     /// Write the estimated pose of every frame here (KITTI format: 12 numbers per line, one
     /// line per frame; a lost frame repeats the last estimated pose).
     #[arg(long)]
@@ -68,6 +77,17 @@ pub fn run(a: VoArgs) -> Result<()> {
         std::fs::write(out, kitti_text(&report.poses))
             .with_context(|| format!("writing {}", out.display()))?;
     }
+    let packet_bytes = match &a.keyframes {
+        Some(dir) => Some(
+            doorslam_frontend::packet::write_keyframe_packets(
+                dir,
+                &report.calibration,
+                &report.keyframes,
+            )
+            .with_context(|| format!("writing keyframe packets to {}", dir.display()))?,
+        ),
+        None => None,
+    };
     let drift = dataset
         .truth
         .as_ref()
@@ -98,8 +118,14 @@ pub fn run(a: VoArgs) -> Result<()> {
             let index: Vec<usize> = dataset.frames.iter().map(|f| f.index).collect();
             let nees = edge_nees(&report.keyframes, &report.edges, &index, truth);
             if !nees.is_empty() {
-                v["edge_nees_mean"] = (nees.iter().sum::<f64>() / nees.len() as f64).into();
-                v["edge_nees_median"] = quantile(&nees, 0.5).unwrap_or(0.0).into();
+                let mean =
+                    |f: fn(&EdgeNees) -> f64| nees.iter().map(f).sum::<f64>() / nees.len() as f64;
+                let total: Vec<f64> = nees.iter().map(|n| n.total).collect();
+                v["edge_nees_mean"] = mean(|n| n.total).into();
+                v["edge_nees_median"] = quantile(&total, 0.5).unwrap_or(0.0).into();
+                // 3 dof each: expected 3 when consistent.
+                v["edge_nees_rotation_mean"] = mean(|n| n.rotation).into();
+                v["edge_nees_translation_mean"] = mean(|n| n.translation).into();
             }
         }
         if let Some(d) = drift {
@@ -109,6 +135,10 @@ pub fn run(a: VoArgs) -> Result<()> {
         }
         if let Some(out) = &a.out {
             v["out"] = out.display().to_string().into();
+        }
+        if let Some(bytes) = packet_bytes {
+            v["keyframe_packet_bytes_mean"] =
+                (bytes as f64 / report.keyframes.len().max(1) as f64).into();
         }
         println!("{v}");
     } else {

@@ -5,7 +5,6 @@
 
 use doorslam_geometry::key::symbol;
 use doorslam_ipc::wire::*;
-use doorslam_ipc::Feature;
 use libfuzzer_sys::arbitrary::{Result, Unstructured};
 use libfuzzer_sys::fuzz_target;
 
@@ -76,19 +75,27 @@ fn body(u: &mut Unstructured<'_>) -> Result<Option<Body>> {
         }
         3 => {
             let key = key(u)?;
+            let Ok(camera) = VerificationCamera::new(
+                u.arbitrary()?,
+                u.arbitrary()?,
+                u.arbitrary()?,
+                u.arbitrary()?,
+                u.arbitrary()?,
+            ) else {
+                return Ok(None);
+            };
             let mut features = Vec::new();
             for _ in 0..u.int_in_range(0..=MAX_FEATURES)? {
-                let f = Feature {
-                    uv: u.arbitrary()?,
-                    point: u.arbitrary()?,
-                    descriptor: u.arbitrary()?,
-                };
-                match VerificationFeature::quantize(&f) {
+                match VerificationFeature::quantize(u.arbitrary()?, u.arbitrary()?, u.arbitrary()?) {
                     Ok(f) => features.push(f),
                     Err(_) => return Ok(None),
                 }
             }
-            Body::VerificationFeatures(VerificationFeatures { key, features })
+            Body::VerificationFeatures(VerificationFeatures {
+                key,
+                camera,
+                features,
+            })
         }
         4 => {
             let mut closures = Vec::new();

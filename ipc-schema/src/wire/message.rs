@@ -3,15 +3,16 @@
 use super::codec::{Counter, Reader, Sink};
 use super::types::{
     read_key, write_key, CompactPose, Descriptor, Information, Pose, RelaxedRotation, RobotId,
-    VerificationFeature, COMPACT_POSE_MIN_BYTES, DESCRIPTOR_DIM, FEATURE_BYTES, INFORMATION_BYTES,
-    POSE_BYTES, RELAXED_ROTATION_BYTES,
+    VerificationCamera, VerificationFeature, COMPACT_POSE_MIN_BYTES, DESCRIPTOR_DIM, FEATURE_BYTES,
+    INFORMATION_BYTES, POSE_BYTES, RELAXED_ROTATION_BYTES,
 };
 use super::WireError;
 use crate::shm::MAX_KEYFRAME_FEATURES;
 
 /// The wire version this build speaks. A message of any other version is refused with
-/// [`WireError::UnknownVersion`]: a layout change bumps it.
-pub const WIRE_VERSION: u8 = 1;
+/// [`WireError::UnknownVersion`]: a layout change bumps it (2: verification features carry
+/// the camera, and a disparity instead of a 3-D point).
+pub const WIRE_VERSION: u8 = 2;
 
 /// Most descriptors in one [`Descriptors`] batch.
 pub const MAX_DESCRIPTORS: usize = 4096;
@@ -146,11 +147,14 @@ pub struct Matches {
 }
 
 /// Features of one of the sender's keyframes, for geometric verification of the putative
-/// matches that name it (rendezvous step 2). Layout: key, count (varint), then 42 bytes
-/// per feature (see [`VerificationFeature`]).
+/// matches that name it (rendezvous step 2). Layout: key, the rectified camera (20 bytes,
+/// [`VerificationCamera`]), count (varint), then 38 bytes per feature (see
+/// [`VerificationFeature`]). The sender puts its best features first and at most as many
+/// as fit its budget (the front-end: 500, 19.1 kB at most with the longest sender id).
 #[derive(Debug, Clone, PartialEq)]
 pub struct VerificationFeatures {
     pub key: u64,
+    pub camera: VerificationCamera,
     pub features: Vec<VerificationFeature>,
 }
 
@@ -385,6 +389,9 @@ impl Message {
             }
             Body::VerificationFeatures(v) => {
                 write_key(s, "features key", v.key)?;
+                // The fields are public: refuse on the way out what the decoder would.
+                v.camera.check(s.offset())?;
+                v.camera.write(s);
                 check_count(s, "feature count", v.features.len(), MAX_FEATURES)?;
                 s.varint(v.features.len() as u64);
                 for f in &v.features {
@@ -471,12 +478,17 @@ impl Message {
             }
             Kind::VerificationFeatures => {
                 let key = read_key(&mut r, "features key")?;
+                let camera = VerificationCamera::read(&mut r)?;
                 let n = r.count("feature count", MAX_FEATURES, FEATURE_BYTES)?;
                 let mut features = Vec::with_capacity(n);
                 for _ in 0..n {
                     features.push(VerificationFeature::read(&mut r)?);
                 }
-                Body::VerificationFeatures(VerificationFeatures { key, features })
+                Body::VerificationFeatures(VerificationFeatures {
+                    key,
+                    camera,
+                    features,
+                })
             }
             Kind::LoopClosures => Body::LoopClosures(LoopClosures {
                 closures: read_closures(&mut r)?,

@@ -21,9 +21,9 @@
 //! Sizes (measured by `tests/wire.rs`, targets from the paper's Table II): a place
 //! descriptor 135 bytes per keyframe in a batch of 10, header share included (≤ 140); a
 //! pose estimate 48 bytes alone in a message, 32 per pose in a round of 20 (≤ 100); a loop
-//! closure 96 bytes alone in a message (≤ 100); a verification feature 42 bytes, so a
-//! packet of 1000 features is 42 kB (the paper's was 59.5 kB; their 32-byte ORB
-//! descriptors alone are 32 kB) and 20 kB holds 475.
+//! closure 96 bytes alone in a message (≤ 100); a verification feature 38 bytes (pixel,
+//! disparity, 32-byte ORB descriptor) after a 20-byte camera, so the front-end's packet of
+//! at most 500 features is ≤ 19.1 kB (target ≤ 20 kB; the paper's was 59.5 kB).
 
 mod codec;
 mod error;
@@ -41,8 +41,8 @@ pub use message::{
 };
 pub use types::{
     CompactPose, Descriptor, Information, Pose, QuantizeError, RelaxedRotation, RobotId,
-    VerificationFeature, COMPACT_POSE_MIN_BYTES, COMPACT_QUATERNION_STEPS,
-    COMPACT_ROTATION_ERROR_RAD, COMPACT_TRANSLATION_STEP_M, DESCRIPTOR_DIM, FEATURE_BYTES,
-    INFORMATION_BYTES, MAX_COMPACT_TRANSLATION_M, MAX_ROBOT_ID_LEN, PIXEL_STEPS, POSE_BYTES,
-    RELAXED_ROTATION_BYTES, RELAXED_ROTATION_STEP,
+    VerificationCamera, VerificationFeature, COMPACT_POSE_MIN_BYTES, COMPACT_QUATERNION_STEPS,
+    COMPACT_ROTATION_ERROR_RAD, COMPACT_TRANSLATION_STEP_M, DESCRIPTOR_DIM, DISPARITY_STEPS,
+    FEATURE_BYTES, INFORMATION_BYTES, MAX_COMPACT_TRANSLATION_M, MAX_ROBOT_ID_LEN, PIXEL_STEPS,
+    POSE_BYTES, RELAXED_ROTATION_BYTES, RELAXED_ROTATION_STEP, VERIFICATION_CAMERA_BYTES,
 };

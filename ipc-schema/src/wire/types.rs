@@ -14,7 +14,6 @@ use doorslam_geometry::{
 
 use super::codec::{f16_from_f32, f32_from_f16, Reader, Sink};
 use super::WireError;
-use crate::shm::Feature;
 
 /// Longest robot id (bytes), as for `robot.id` in robot.toml.
 pub const MAX_ROBOT_ID_LEN: usize = 32;
@@ -343,109 +342,186 @@ impl Descriptor {
 
 /// Pixel coordinates travel in 1/16 pixel (u16): 0 to 4095.94 px, rounding error ≤ 1/32 px.
 pub const PIXEL_STEPS: f32 = 16.0;
+/// Disparities travel in 1/64 pixel (u16): 1/64 to 1023.98 px, rounding error ≤ 1/128 px.
+pub const DISPARITY_STEPS: f32 = 64.0;
 
-/// One feature for geometric verification (42 bytes): pixel in the left rectified image
-/// (u16 in 1/16 px, x then y), the 32-byte ORB descriptor, and the 3-D point in the camera
-/// frame (metres) as three IEEE half floats.
+/// The rectified stereo camera a [`VerificationFeatures`](super::VerificationFeatures)
+/// packet was measured with (20 bytes: five f32): what turns its pixels and disparities
+/// into 3-D points and their covariances, so robots with different cameras can verify
+/// each other's keyframes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VerificationCamera {
+    /// Focal lengths and principal point (px).
+    pub fx: f32,
+    pub fy: f32,
+    pub cx: f32,
+    pub cy: f32,
+    /// Distance between the optical centres (m).
+    pub baseline_m: f32,
+}
+
+/// Bytes of a [`VerificationCamera`] on the wire.
+pub const VERIFICATION_CAMERA_BYTES: usize = 20;
+
+impl VerificationCamera {
+    /// Checked: every value finite, focal lengths and baseline > 0.
+    pub fn new(fx: f32, fy: f32, cx: f32, cy: f32, baseline_m: f32) -> Result<Self, QuantizeError> {
+        let camera = Self {
+            fx,
+            fy,
+            cx,
+            cy,
+            baseline_m,
+        };
+        match camera.problem() {
+            None => Ok(camera),
+            Some((field, value)) => Err(QuantizeError::OutOfRange {
+                field,
+                value: f64::from(value),
+                min: 0.0,
+                max: f64::from(f32::MAX),
+            }),
+        }
+    }
+
+    /// The first value that breaks the rule, if any.
+    fn problem(&self) -> Option<(&'static str, f32)> {
+        [
+            ("camera fx", self.fx, true),
+            ("camera fy", self.fy, true),
+            ("camera cx", self.cx, false),
+            ("camera cy", self.cy, false),
+            ("camera baseline", self.baseline_m, true),
+        ]
+        .into_iter()
+        .find(|&(_, v, positive)| !v.is_finite() || (positive && v <= 0.0))
+        .map(|(field, v, _)| (field, v))
+    }
+
+    pub(crate) fn write(&self, s: &mut impl Sink) {
+        for v in [self.fx, self.fy, self.cx, self.cy, self.baseline_m] {
+            s.f32(v);
+        }
+    }
+
+    /// [`Self::new`]'s rule as a wire error at `offset`.
+    pub(crate) fn check(&self, offset: usize) -> Result<(), WireError> {
+        match self.problem() {
+            None => Ok(()),
+            Some((field, v)) => Err(WireError::invalid(
+                field,
+                offset,
+                format!("{v}: must be finite (focal lengths and baseline > 0)"),
+            )),
+        }
+    }
+
+    pub(crate) fn read(r: &mut Reader<'_>) -> Result<Self, WireError> {
+        let offset = r.offset();
+        let camera = Self {
+            fx: r.f32("camera fx")?,
+            fy: r.f32("camera fy")?,
+            cx: r.f32("camera cx")?,
+            cy: r.f32("camera cy")?,
+            baseline_m: r.f32("camera baseline")?,
+        };
+        camera.check(offset)?;
+        Ok(camera)
+    }
+}
+
+/// One feature for geometric verification (38 bytes): pixel in the left rectified image
+/// (u16 in 1/16 px, x then y), disparity (u16 in 1/64 px, > 0) and the 32-byte ORB
+/// descriptor.
 ///
-/// Why half floats for the point: their error is relative (≤ 1/2048 of the value: 0.5 mm
-/// at 1 m, 15 mm at 30 m), like stereo depth error, which grows with the square of depth
-/// (tens of centimetres at 30 m): the rounding stays far below the measurement noise at
-/// every depth, with no range limit to clip. Pixels need absolute precision, hence fixed
-/// point. PnP then sees errors well below its reprojection threshold (a few pixels).
+/// Why pixel and disparity rather than a 3-D point: they are what stereo measures, the
+/// point follows from them and the packet's [`VerificationCamera`] exactly (on the pixel's
+/// ray), and so does its covariance (depth σ grows with z², from the disparity's σ). In
+/// fixed point their rounding (≤ 1/32 px, ≤ 1/128 px) is a few percent of the
+/// measurement noise (~0.5 px) at every depth, in 6 bytes instead of a point's 6 plus a
+/// pixel's 4.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct VerificationFeature {
     /// x, y in 1/16 px.
     pub pixel: [u16; 2],
+    /// Disparity in 1/64 px (never 0).
+    pub disparity: u16,
     pub descriptor: [u8; 32],
-    /// x, y, z in metres, half-float bits.
-    pub point: [u16; 3],
 }
 
 /// Bytes of a [`VerificationFeature`] on the wire.
-pub const FEATURE_BYTES: usize = 4 + 32 + 6;
+pub const FEATURE_BYTES: usize = 4 + 2 + 32;
 
 impl VerificationFeature {
-    /// Rounds a keyframe feature to the wire form; refused if a value is not finite, the
-    /// pixel is outside 0..4096 or the point beyond half-float range (65 km).
-    pub fn quantize(f: &Feature) -> Result<Self, QuantizeError> {
-        let mut pixel = [0u16; 2];
-        for (p, &v) in pixel.iter_mut().zip(&f.uv) {
+    /// Rounds a stereo feature to the wire form; refused if a value is not finite, the
+    /// pixel is outside 0..4096 or the disparity outside 1/64..1024 px.
+    pub fn quantize(
+        pixel: [f32; 2],
+        disparity_px: f32,
+        descriptor: [u8; 32],
+    ) -> Result<Self, QuantizeError> {
+        let fixed = |field: &'static str, v: f32, steps: f32, min: u16| {
             if !v.is_finite() {
                 return Err(QuantizeError::NonFinite {
-                    field: "feature pixel",
+                    field,
                     value: f64::from(v),
                 });
             }
-            let q = (v * PIXEL_STEPS).round();
-            if !(0.0..=f32::from(u16::MAX)).contains(&q) {
+            let q = (v * steps).round();
+            if !(f32::from(min)..=f32::from(u16::MAX)).contains(&q) {
                 return Err(QuantizeError::OutOfRange {
-                    field: "feature pixel",
+                    field,
                     value: f64::from(v),
-                    min: 0.0,
-                    max: f64::from(u16::MAX) / f64::from(PIXEL_STEPS),
+                    min: f64::from(min) / f64::from(steps),
+                    max: f64::from(u16::MAX) / f64::from(steps),
                 });
             }
-            *p = q as u16;
-        }
-        let mut point = [0u16; 3];
-        for (p, &v) in point.iter_mut().zip(&f.point) {
-            let h = f16_from_f32(v);
-            if !f32_from_f16(h).is_finite() {
-                return Err(QuantizeError::OutOfRange {
-                    field: "feature point",
-                    value: f64::from(v),
-                    min: -65504.0,
-                    max: 65504.0,
-                });
-            }
-            *p = h;
-        }
+            Ok(q as u16)
+        };
         Ok(Self {
-            pixel,
-            descriptor: f.descriptor,
-            point,
+            pixel: [
+                fixed("feature pixel", pixel[0], PIXEL_STEPS, 0)?,
+                fixed("feature pixel", pixel[1], PIXEL_STEPS, 0)?,
+            ],
+            disparity: fixed("feature disparity", disparity_px, DISPARITY_STEPS, 1)?,
+            descriptor,
         })
     }
 
-    /// The feature as the front-end uses it.
-    pub fn to_feature(&self) -> Feature {
-        Feature {
-            uv: self.pixel.map(|p| f32::from(p) / PIXEL_STEPS),
-            point: self.point.map(f32_from_f16),
-            descriptor: self.descriptor,
-        }
+    /// The pixel (u, v) in px.
+    pub fn pixel_px(&self) -> [f32; 2] {
+        self.pixel.map(|p| f32::from(p) / PIXEL_STEPS)
+    }
+
+    /// The disparity in px.
+    pub fn disparity_px(&self) -> f32 {
+        f32::from(self.disparity) / DISPARITY_STEPS
     }
 
     pub(crate) fn write(&self, s: &mut impl Sink) {
         for p in self.pixel {
             s.u16(p);
         }
+        s.u16(self.disparity);
         s.put(&self.descriptor);
-        for p in self.point {
-            s.u16(p);
-        }
     }
 
     pub(crate) fn read(r: &mut Reader<'_>) -> Result<Self, WireError> {
         let pixel = [r.u16("feature pixel")?, r.u16("feature pixel")?];
-        let descriptor = r.array("feature descriptor")?;
-        let mut point = [0u16; 3];
-        for p in &mut point {
-            let offset = r.offset();
-            *p = r.u16("feature point")?;
-            if !f32_from_f16(*p).is_finite() {
-                return Err(WireError::invalid(
-                    "feature point",
-                    offset,
-                    "half float is not finite",
-                ));
-            }
+        let offset = r.offset();
+        let disparity = r.u16("feature disparity")?;
+        if disparity == 0 {
+            return Err(WireError::invalid(
+                "feature disparity",
+                offset,
+                "must be > 0",
+            ));
         }
+        let descriptor = r.array("feature descriptor")?;
         Ok(Self {
             pixel,
+            disparity,
             descriptor,
-            point,
         })
     }
 }

@@ -1,5 +1,7 @@
 //! The replay source: a dataset folder played into the robot's frame service, at real
 //! time, faster, or as fast as possible, with ground truth in the frame header when known.
+//! Frames go out rectified: a dataset that is not rectified on disk (EuRoC) goes through
+//! its rectifier (`Dataset::rectifier`), so subscribers use the rectified calibration.
 
 use std::time::{Duration, Instant};
 
@@ -45,7 +47,8 @@ pub fn run(
     if let Some([part, parts]) = config.split {
         dataset = dataset.split(part, parts)?;
     }
-    tracing::info!(path = %config.path.display(), layout = ?dataset.layout, frames = dataset.len(), truth = dataset.truth.is_some(), rate = config.rate, "replay: dataset opened");
+    let rectifier = dataset.rectifier()?;
+    tracing::info!(path = %config.path.display(), rectified_here = rectifier.is_some(), layout = ?dataset.layout, frames = dataset.len(), truth = dataset.truth.is_some(), rate = config.rate, "replay: dataset opened");
     let (node, _) = create_node("doorslam-camera-replay")?;
     let sender = Sender::<StereoFrame>::new(&node, robot, Topic::Frames)?;
     let mut lifecycle = Lifecycle::new();
@@ -107,6 +110,10 @@ pub fn run(
             }
         }
         let pair = dataset.load(k)?;
+        let pair = match &rectifier {
+            Some(r) => r.rectify(&pair)?,
+            None => pair,
+        };
         let truth = dataset
             .truth
             .as_ref()

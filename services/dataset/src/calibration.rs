@@ -4,8 +4,8 @@
 //! Read from KITTI's `calib.txt` (the rectified projection matrices `P0` of the left and
 //! `P1` of the right camera, 12 row-major values each), which is also what
 //! `doorslam sim world` writes for the simulator's cameras. Errors name the file, line and
-//! field. EuRoC's `sensor.yaml` (unrectified: intrinsics, distortion, extrinsics) needs
-//! rectification maps and belongs with the front-end's OpenCV code.
+//! field. EuRoC's `sensor.yaml` (unrectified: intrinsics, distortion, extrinsics) gives one
+//! through rectification ([`crate::euroc::Rectifier`]).
 
 use std::path::Path;
 

@@ -11,15 +11,19 @@
 //!   pose format, one line per frame; KITTI ships it separately as `poses/XX.txt`: point
 //!   [`Dataset::with_truth`] at it).
 //! - **EuRoC ASL**: `mav0/cam0/data/<ns>.png` and `mav0/cam1/data/<ns>.png` (the `mav0/`
-//!   level is optional), timestamps from the file names. No ground truth is attached (it
-//!   is the body frame, not the camera's).
+//!   level is optional), timestamps from the file names, calibration in
+//!   `cam0/sensor.yaml` and `cam1/sensor.yaml`. The images are distorted and not
+//!   rectified: [`Dataset::stereo`] gives the [`Rectifier`] that makes them so. No ground
+//!   truth is attached (it is the body frame, not the camera's).
 //!
 //! [`Dataset::split`] keeps one of N consecutive parts, as in the paper's KITTI 00
 //! experiment where one sequence plays the role of several robots.
 
 pub mod calibration;
+pub mod euroc;
 
 pub use calibration::StereoCalibration;
+pub use euroc::{EurocCamera, Rectifier};
 
 use std::path::{Path, PathBuf};
 
@@ -38,6 +42,12 @@ pub enum DatasetError {
     },
     #[error("{path}: cannot decode PNG: {msg}")]
     Png { path: PathBuf, msg: String },
+    #[error("{path}: field {field}: {msg}")]
+    Field {
+        path: PathBuf,
+        field: String,
+        msg: String,
+    },
     #[error("{path}:{line}: {msg}")]
     Line {
         path: PathBuf,
@@ -273,18 +283,46 @@ impl Dataset {
         self.frames.len()
     }
 
-    /// The rectified stereo calibration of a KITTI-layout folder (`calib.txt`, as KITTI and
-    /// `doorslam sim world` write it). EuRoC folders are not rectified: their `sensor.yaml`
-    /// needs rectification maps, which the front-end computes.
+    /// The rectified stereo calibration: a KITTI-layout folder's `calib.txt` (as KITTI and
+    /// `doorslam sim world` write it), or an EuRoC folder's `sensor.yaml` pair after
+    /// rectification (which computes the maps: call [`Self::stereo`] to keep them).
     pub fn calibration(&self) -> Result<StereoCalibration, DatasetError> {
+        Ok(self.stereo()?.calibration)
+    }
+
+    /// The camera of this dataset as stereo VO sees it: the rectified calibration and, for
+    /// EuRoC folders, the rectifier every raw pair must go through first
+    /// ([`Stereo::prepare`]). The one place both the offline VO and the camera's replay
+    /// learn whether frames need rectifying.
+    pub fn stereo(&self) -> Result<Stereo, DatasetError> {
+        Ok(match self.rectifier()? {
+            Some(rectifier) => Stereo {
+                calibration: rectifier.calibration(),
+                rectifier: Some(rectifier),
+            },
+            None => Stereo {
+                calibration: StereoCalibration::from_kitti(&self.root.join("calib.txt"))?,
+                rectifier: None,
+            },
+        })
+    }
+
+    /// The rectifier raw pairs need, `None` when the folder is rectified on disk (KITTI
+    /// layout); reads no KITTI `calib.txt`, so a replay that only forwards frames does not
+    /// need one.
+    pub fn rectifier(&self) -> Result<Option<Rectifier>, DatasetError> {
         match self.layout {
-            Layout::Kitti => StereoCalibration::from_kitti(&self.root.join("calib.txt")),
-            Layout::Euroc => Err(DatasetError::Layout {
-                path: self.root.clone(),
-                msg: "EuRoC images are not rectified: the calibration (sensor.yaml) is read with rectification by the front-end".into(),
-            }),
+            Layout::Kitti => Ok(None),
+            Layout::Euroc => {
+                let base = [self.root.join("mav0"), self.root.clone()]
+                    .into_iter()
+                    .find(|b| b.join("cam0/data").is_dir())
+                    .unwrap_or_else(|| self.root.clone());
+                Rectifier::from_euroc_folder(&base).map(Some)
+            }
         }
     }
+
     pub fn is_empty(&self) -> bool {
         self.frames.is_empty()
     }
@@ -309,6 +347,24 @@ impl Dataset {
             left,
             right,
         })
+    }
+}
+
+/// A dataset's stereo camera: the calibration of the pairs VO gets, and the rectifier raw
+/// pairs go through when the dataset is not rectified on disk (EuRoC).
+#[derive(Debug)]
+pub struct Stereo {
+    pub calibration: StereoCalibration,
+    pub rectifier: Option<Rectifier>,
+}
+
+impl Stereo {
+    /// The pair as VO must see it: rectified when the dataset is not.
+    pub fn prepare(&self, pair: Pair) -> Result<Pair, DatasetError> {
+        match &self.rectifier {
+            Some(r) => r.rectify(&pair),
+            None => Ok(pair),
+        }
     }
 }
 

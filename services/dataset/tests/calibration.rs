@@ -29,16 +29,6 @@ fn kitti_odometry_and_raw_calibrations() {
 }
 
 #[test]
-fn euroc_folders_say_where_their_calibration_is_read() {
-    let d = Dataset::open(&data("stereo/euroc_v101_micro")).unwrap();
-    let e = d.calibration().unwrap_err().to_string();
-    assert!(
-        e.contains("not rectified") && e.contains("euroc_v101_micro"),
-        "{e}"
-    );
-}
-
-#[test]
 fn a_missing_file_is_named() {
     let e = StereoCalibration::from_kitti(&data("stereo/no-such/calib.txt"))
         .unwrap_err()

@@ -44,6 +44,19 @@ pub struct VoConfig {
     pub pixel_sigma_px: f64,
     /// Standard deviation of a sub-pixel disparity (px).
     pub disparity_sigma_px: f64,
+    /// Scale each edge's information down by the refinement's a-posteriori variance
+    /// factor (χ² per degree of freedom) when the residuals exceed the noise model.
+    pub posterior_variance: bool,
+    /// Errors every feature of an edge shares, which the residuals cannot show: the rig's
+    /// calibration and rectification (and, against a dataset's ground truth, the ground
+    /// truth's own noise). Added to each edge's covariance: the relative uncertainty of the
+    /// rig's scale (baseline, focal length) along the translation, and a rotation (degrees
+    /// per axis) and translation (m per axis) of their own. Set to 0 for a perfectly
+    /// calibrated (simulated) camera; the defaults are fitted to the KITTI 06 clip
+    /// (BENCHMARKS.md: edge NEES 632 → 13 there, 6.1 → 3.4 on a simulated flight).
+    pub scale_sigma: f64,
+    pub rotation_sigma_deg: f64,
+    pub translation_sigma_m: f64,
     /// Search radius around the motion prior's prediction (px); tried twice as
     /// `search_radius_px` then `wide_search_radius_px` when the first finds too few matches.
     pub search_radius_px: f64,
@@ -102,6 +115,10 @@ impl Default for VoConfig {
             stereo_max_mean_abs_diff: 25.0,
             pixel_sigma_px: 0.5,
             disparity_sigma_px: 0.5,
+            posterior_variance: true,
+            scale_sigma: 0.0075,
+            rotation_sigma_deg: 0.03,
+            translation_sigma_m: 0.006,
             search_radius_px: 20.0,
             wide_search_radius_px: 80.0,
             max_hamming: 64,
@@ -245,6 +262,26 @@ impl VoConfig {
                 &self.min_intensity_std,
                 "must be finite and >= 0",
             ));
+        }
+        if !(self.rotation_sigma_deg.is_finite() && (0.0..10.0).contains(&self.rotation_sigma_deg))
+        {
+            return Err(bad(
+                "rotation_sigma_deg",
+                &self.rotation_sigma_deg,
+                "must be in [0, 10)",
+            ));
+        }
+        if !(self.translation_sigma_m.is_finite()
+            && (0.0..10.0).contains(&self.translation_sigma_m))
+        {
+            return Err(bad(
+                "translation_sigma_m",
+                &self.translation_sigma_m,
+                "must be in [0, 10)",
+            ));
+        }
+        if !(self.scale_sigma.is_finite() && (0.0..1.0).contains(&self.scale_sigma)) {
+            return Err(bad("scale_sigma", &self.scale_sigma, "must be in [0, 1)"));
         }
         if !(1..=64).contains(&self.threads) {
             return Err(bad("threads", &self.threads, "must be 1..=64"));

@@ -30,6 +30,8 @@ pub struct Keyframe {
     /// Left-camera pose (camera-to-world) in the odometry's world frame; a new segment starts
     /// where the previous one was last seen, moved by its last motion (see [`SegmentLink`]).
     pub pose: SE3,
+    /// Its stereo features, strongest detector response first: the first N are the best N
+    /// (what [`crate::packet::to_packet`] sends).
     pub features: Vec<Feature>,
 }
 

@@ -29,11 +29,26 @@ pub struct Correspondence {
     pub disparity: Option<f64>,
 }
 
-/// Measurement noise of one feature.
+/// Measurement noise of one feature, and what the information of the estimate must also
+/// account for beyond the features' independent noise.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Noise {
     pub pixel_sigma_px: f64,
     pub disparity_sigma_px: f64,
+    /// Scale the information down by the a-posteriori variance factor
+    /// `σ̂² = χ² / (residual dimensions − 6)` when it exceeds 1: the residuals say the
+    /// pixel noise is larger than `pixel_sigma_px` assumed.
+    pub posterior_variance: bool,
+    /// Relative standard deviation of the stereo rig's scale (baseline and focal length):
+    /// an error every point shares, which no residual reveals, and which moves the
+    /// translation along itself: `Σ += σs² (Rᵀt)(Rᵀt)ᵀ` on the translation block.
+    pub scale_sigma: f64,
+    /// Standard deviation (rad, per axis) of a rotation error every feature shares
+    /// (rectification and calibration errors of a real rig, which bias the pose without
+    /// showing in the residuals): `Σ += σ² I` on the rotation block (0: none).
+    pub rotation_sigma_rad: f64,
+    /// The same for the translation (m per axis): `Σ += σ² I` on the translation block.
+    pub translation_sigma_m: f64,
 }
 
 /// A refined motion.
@@ -114,6 +129,23 @@ fn linearize(
     chi2.is_finite().then_some(Linearized { r, w, j, chi2 })
 }
 
+/// `Ω` of a pose `X` (right perturbation, rotation first) after adding the covariance of
+/// a relative scale error `σs` of its translation, `t' = (1 + s) t`, i.e. `δt = s Rᵀ t`:
+/// with `u = σs (0, Rᵀt)`, `(Ω⁻¹ + u uᵀ)⁻¹ = Ω − Ω u uᵀ Ω / (1 + uᵀ Ω u)`.
+fn with_scale_uncertainty(
+    information: &TangentMatrix,
+    pose: &SE3,
+    scale_sigma: f64,
+) -> Option<TangentMatrix> {
+    let mut u = Tangent::zeros();
+    let body_t = pose.rotation.inverse() * pose.translation.vector;
+    u.fixed_rows_mut::<3>(3).copy_from(&(body_t * scale_sigma));
+    let w = information * u;
+    let denominator = 1.0 + u.dot(&w);
+    (denominator.is_finite() && denominator > 0.0)
+        .then(|| information - w * w.transpose() / denominator)
+}
+
 /// Gauss-Newton from `initial` on the correspondences `start` (RANSAC's inliers), then
 /// re-selecting inliers among all correspondences by `χ² < outlier_chi2` and refining
 /// again, until the set settles. `None` when fewer than `min_inliers` remain or the normal
@@ -180,6 +212,33 @@ pub fn refine(
         information += l.j.transpose() * l.w * l.j;
         chi2 += l.chi2;
     }
+    let dims: usize = active
+        .iter()
+        .map(|&i| {
+            if correspondences[i].disparity.is_some() {
+                3
+            } else {
+                2
+            }
+        })
+        .sum();
+    if noise.posterior_variance && dims > 6 {
+        let variance_factor = chi2 / (dims - 6) as f64;
+        if variance_factor > 1.0 {
+            information /= variance_factor;
+        }
+    }
+    if noise.scale_sigma > 0.0 {
+        information = with_scale_uncertainty(&information, &pose, noise.scale_sigma)?;
+    }
+    if noise.rotation_sigma_rad > 0.0 || noise.translation_sigma_m > 0.0 {
+        let mut covariance = information.try_inverse()?;
+        for k in 0..3 {
+            covariance[(k, k)] += noise.rotation_sigma_rad.powi(2);
+            covariance[(k + 3, k + 3)] += noise.translation_sigma_m.powi(2);
+        }
+        information = covariance.try_inverse()?;
+    }
     // Symmetric to rounding: mirror the upper triangle so downstream checks see exact symmetry.
     let information = 0.5 * (information + information.transpose());
     information.cholesky()?;
@@ -189,4 +248,43 @@ pub fn refine(
         mean_chi2: chi2 / active.len() as f64,
         inliers: active,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion};
+
+    #[test]
+    fn scale_uncertainty_adds_its_covariance_along_the_translation() {
+        let pose = SE3::from_parts(
+            Translation3::new(0.3, -0.1, 1.5),
+            UnitQuaternion::from_euler_angles(0.1, -0.2, 0.05),
+        );
+        let mut information = TangentMatrix::identity() * 1e4;
+        information[(0, 4)] = 20.0;
+        information[(4, 0)] = 20.0;
+        let sigma = 0.01;
+        let updated = with_scale_uncertainty(&information, &pose, sigma).unwrap();
+        // (Ω⁻¹ + u uᵀ)⁻¹ with u = σ (0, Rᵀt).
+        let mut u = Tangent::zeros();
+        u.fixed_rows_mut::<3>(3)
+            .copy_from(&(pose.rotation.inverse() * pose.translation.vector * sigma));
+        let want = (information.try_inverse().unwrap() + u * u.transpose())
+            .try_inverse()
+            .unwrap();
+        assert!(
+            (updated - want).amax() < 1e-6 * want.amax(),
+            "{updated}\n{want}"
+        );
+        // Only the direction of the translation loses information.
+        let along = u.normalize();
+        assert!(
+            (along.transpose() * updated * along)[0] < (along.transpose() * information * along)[0]
+        );
+        // A rotation axis that nothing couples to the translation keeps all of it.
+        let mut across = Tangent::zeros();
+        across[1] = 1.0;
+        assert!(((across.transpose() * updated * across)[0] - 1e4).abs() < 1e-6);
+    }
 }

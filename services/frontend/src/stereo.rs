@@ -77,6 +77,9 @@ pub struct FrameFeature {
     pub descriptor: [u8; 32],
     /// Sub-pixel disparity (px) when the right image matched along the row.
     pub disparity: Option<f32>,
+    /// Detector response (higher is stronger): keyframes keep their features in this
+    /// order, so a packet's first N are its best.
+    pub response: f32,
 }
 
 /// A stereo frame's features.
@@ -181,6 +184,7 @@ impl Extractor {
                 pixel,
                 descriptor,
                 disparity,
+                response: kp.response(),
             });
         }
         Ok(FrameFeatures { features })

@@ -32,6 +32,11 @@ pub struct VerifyConfig {
     /// Noise model of the refinement (as the odometry's).
     pub pixel_sigma_px: f64,
     pub disparity_sigma_px: f64,
+    /// As the odometry's (`VoConfig`): a-posteriori variance factor, rig scale σ.
+    pub posterior_variance: bool,
+    pub scale_sigma: f64,
+    pub rotation_sigma_deg: f64,
+    pub translation_sigma_m: f64,
     /// χ² (3 dof) above which a refined match is an outlier.
     pub outlier_chi2: f64,
 }
@@ -46,6 +51,10 @@ impl Default for VerifyConfig {
             ransac_iterations: 200,
             pixel_sigma_px: 0.5,
             disparity_sigma_px: 0.5,
+            posterior_variance: true,
+            scale_sigma: 0.0075,
+            rotation_sigma_deg: 0.03,
+            translation_sigma_m: 0.006,
             outlier_chi2: 11.34,
         }
     }
@@ -83,6 +92,19 @@ pub enum Rejection {
     TooFewInliers { inliers: usize, needed: usize },
 }
 
+impl Rejection {
+    /// The reason's name in JSON output (`doorslam verify --json`).
+    pub fn name(&self) -> &'static str {
+        match self {
+            Rejection::TooFewFeatures { .. } => "too_few_features",
+            Rejection::BadFeature { .. } => "bad_feature",
+            Rejection::TooFewMatches { .. } => "too_few_matches",
+            Rejection::NoPose => "no_pose",
+            Rejection::TooFewInliers { .. } => "too_few_inliers",
+        }
+    }
+}
+
 /// For each `a[i]`: the index of its best match in `b` if it passes the ratio test.
 fn best_matches(a: &[Feature], b: &[Feature], config: &VerifyConfig) -> Vec<Option<usize>> {
     a.iter()
@@ -103,14 +125,17 @@ fn best_matches(a: &[Feature], b: &[Feature], config: &VerifyConfig) -> Vec<Opti
         .collect()
 }
 
-/// Verifies a candidate: `local` and `remote` are the features of two keyframes taken with
-/// the same (rectified) camera model `calib`.
+/// Verifies a candidate: `local` are the features of a keyframe seen with the rectified
+/// camera `local_calib`, `remote` those of the other keyframe, seen with `remote_calib`
+/// (another robot's camera: from its packet, [`crate::packet::from_packet`]).
 pub fn verify(
-    calib: &StereoCalibration,
+    local_calib: &StereoCalibration,
     local: &[Feature],
+    remote_calib: &StereoCalibration,
     remote: &[Feature],
     config: &VerifyConfig,
 ) -> Result<Verified, Rejection> {
+    let calib = local_calib;
     let needed = config.min_inliers.max(4);
     if local.len() < needed || remote.len() < needed {
         return Err(Rejection::TooFewFeatures {
@@ -162,7 +187,7 @@ pub fn verify(
             needed,
         });
     }
-    let disparity = |f: &Feature| calib.fx * calib.baseline_m / f.point[2] as f64;
+    let disparity = |c: &StereoCalibration, f: &Feature| c.fx * c.baseline_m / f.point[2] as f64;
     let correspondences: Vec<Correspondence> = pairs
         .iter()
         .zip(&points)
@@ -170,20 +195,25 @@ pub fn verify(
             let fr = &remote[r];
             Correspondence {
                 point: *p,
+                // The remote point's covariance comes from the remote camera's noise.
                 point_jacobian: triangulation_jacobian(
-                    calib,
+                    remote_calib,
                     fr.pixel[0] as f64,
                     fr.pixel[1] as f64,
-                    disparity(fr),
+                    disparity(remote_calib, fr),
                 ),
                 pixel: [local[l].pixel[0] as f64, local[l].pixel[1] as f64],
-                disparity: Some(disparity(&local[l])),
+                disparity: Some(disparity(calib, &local[l])),
             }
         })
         .collect();
     let noise = Noise {
         pixel_sigma_px: config.pixel_sigma_px,
         disparity_sigma_px: config.disparity_sigma_px,
+        posterior_variance: config.posterior_variance,
+        scale_sigma: config.scale_sigma,
+        rotation_sigma_rad: config.rotation_sigma_deg.to_radians(),
+        translation_sigma_m: config.translation_sigma_m,
     };
     let refined = refine(
         calib,

@@ -14,7 +14,9 @@ use crate::config::VoConfig;
 use crate::features::FrontendError;
 use crate::keyframe::{Feature, Keyframe, OdometryEdge, SegmentLink};
 use crate::refine::{refine, Correspondence, Noise};
-use crate::stereo::{triangulate, triangulation_jacobian, Extractor, FrameFeatures, Gray};
+use crate::stereo::{
+    triangulate, triangulation_jacobian, Extractor, FrameFeature, FrameFeatures, Gray,
+};
 
 fn cv(op: &'static str) -> impl FnOnce(opencv::Error) -> FrontendError {
     move |source| FrontendError::OpenCv { op, source }
@@ -143,6 +145,24 @@ pub struct StereoVo {
     stats: VoStats,
 }
 
+/// Tells glibc's allocator to keep freed memory in the process (once per process): OpenCV
+/// allocates and frees image-sized buffers every frame, and with the default thresholds
+/// each free returned them to the kernel and each allocation faulted them back in, zeroed:
+/// a third of the odometry's CPU time at 752×480 (`perf`; 12.0 → 7.9 ms per frame,
+/// BENCHMARKS.md). The working set stays what the odometry uses (tens of MB).
+fn keep_freed_memory() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        #[cfg(all(target_os = "linux", target_env = "gnu"))]
+        // SAFETY: mallopt only changes allocator parameters; it is called once, before
+        // this thread allocates for the odometry, and is safe to call at any time.
+        unsafe {
+            libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+            libc::mallopt(libc::M_TRIM_THRESHOLD, 512 << 20);
+        }
+    });
+}
+
 fn seconds(from_ns: u64, to_ns: u64) -> f64 {
     to_ns.saturating_sub(from_ns) as f64 * 1e-9
 }
@@ -151,6 +171,7 @@ impl StereoVo {
     /// Checks the configuration and sets OpenCV's thread count (`threads`, 1 by default).
     pub fn new(calib: StereoCalibration, config: VoConfig) -> Result<Self, FrontendError> {
         config.validate()?;
+        keep_freed_memory();
         opencv::core::set_num_threads(config.threads as i32).map_err(cv("setNumThreads"))?;
         Ok(Self {
             extractor: Extractor::new(&config)?,
@@ -255,11 +276,7 @@ impl StereoVo {
         pose: SE3,
         features: &FrameFeatures,
     ) -> Option<(ActiveKeyframe, Keyframe)> {
-        let stereo: Vec<_> = features
-            .features
-            .iter()
-            .filter_map(|f| f.disparity.map(|d| (f, d as f64)))
-            .collect();
+        let stereo = stereo_points(features);
         if stereo.len() < self.config.min_keyframe_points {
             return None;
         }
@@ -274,22 +291,14 @@ impl StereoVo {
             pixels: Vec::with_capacity(stereo.len()),
             descriptors: Vec::with_capacity(stereo.len()),
         };
-        let mut out = Vec::with_capacity(stereo.len());
-        for (f, d) in stereo {
+        for &(f, d) in &stereo {
             let (u, v) = (f.pixel[0] as f64, f.pixel[1] as f64);
-            let p = triangulate(&self.calib, u, v, d);
-            active.points.push(p.coords);
+            active.points.push(triangulate(&self.calib, u, v, d).coords);
             active
                 .point_jacobians
                 .push(triangulation_jacobian(&self.calib, u, v, d));
             active.pixels.push(f.pixel);
             active.descriptors.push(f.descriptor);
-            out.push(Feature {
-                pixel: f.pixel,
-                descriptor: f.descriptor,
-                point: [p.x as f32, p.y as f32, p.z as f32],
-                depth_sigma_m: (p.z / d * self.config.disparity_sigma_px) as f32,
-            });
         }
         let keyframe = Keyframe {
             id,
@@ -297,9 +306,24 @@ impl StereoVo {
             frame,
             stamp_ns,
             pose,
-            features: out,
+            features: keyframe_features(&self.calib, &self.config, &stereo),
         };
         Some((active, keyframe))
+    }
+
+    /// The features a keyframe made of this pair would carry (strongest first), without
+    /// touching the odometry's state: for verifying arbitrary frames (benchmarks, tools).
+    pub fn keyframe_features(
+        &mut self,
+        left: &Gray<'_>,
+        right: &Gray<'_>,
+    ) -> Result<Vec<Feature>, FrontendError> {
+        let features = self.extractor.extract(left, right)?;
+        Ok(keyframe_features(
+            &self.calib,
+            &self.config,
+            &stereo_points(&features),
+        ))
     }
 
     fn initialize(&mut self, frame: u64, stamp_ns: u64, features: &FrameFeatures) -> FrameResult {
@@ -413,6 +437,10 @@ impl StereoVo {
         let noise = Noise {
             pixel_sigma_px: self.config.pixel_sigma_px,
             disparity_sigma_px: self.config.disparity_sigma_px,
+            posterior_variance: self.config.posterior_variance,
+            scale_sigma: self.config.scale_sigma,
+            rotation_sigma_rad: self.config.rotation_sigma_deg.to_radians(),
+            translation_sigma_m: self.config.translation_sigma_m,
         };
         let Some(refined) = refine(
             &self.calib,
@@ -487,6 +515,38 @@ impl StereoVo {
         track.velocity = velocity;
         result
     }
+}
+
+/// The features of a frame that have a disparity, strongest first (the order keyframes
+/// keep, so the first N of a keyframe are its best).
+fn stereo_points(features: &FrameFeatures) -> Vec<(&FrameFeature, f64)> {
+    let mut stereo: Vec<_> = features
+        .features
+        .iter()
+        .filter_map(|f| f.disparity.map(|d| (f, d as f64)))
+        .collect();
+    stereo.sort_by(|a, b| b.0.response.total_cmp(&a.0.response));
+    stereo
+}
+
+/// Keyframe features of stereo points: each triangulated, with its depth σ.
+fn keyframe_features(
+    calib: &StereoCalibration,
+    config: &VoConfig,
+    stereo: &[(&FrameFeature, f64)],
+) -> Vec<Feature> {
+    stereo
+        .iter()
+        .map(|&(f, d)| {
+            let p = triangulate(calib, f.pixel[0] as f64, f.pixel[1] as f64, d);
+            Feature {
+                pixel: f.pixel,
+                descriptor: f.descriptor,
+                point: [p.x as f32, p.y as f32, p.z as f32],
+                depth_sigma_m: (p.z / d * config.disparity_sigma_px) as f32,
+            }
+        })
+        .collect()
 }
 
 /// Hamming distance of two 256-bit descriptors.

@@ -10,12 +10,13 @@ use std::collections::{BTreeMap, VecDeque};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use doorslam_dataset::StereoCalibration;
-use doorslam_frontend::{verify, Rejection, VerifyConfig};
+use doorslam_frontend::packet::{from_packet, to_packet, MAX_PACKET_FEATURES};
+use doorslam_frontend::{verify, VerifyConfig};
 use doorslam_geometry::information::upper_from_matrix;
 use doorslam_geometry::{key, pose_to_array, reverse_measurement};
 use doorslam_ipc::wire::{
     Body, Descriptor, Header, Information, LoopClosure, Match, Message, Pose, RobotId,
-    VerificationFeature, VerificationFeatures, DESCRIPTOR_DIM,
+    VerificationFeatures, DESCRIPTOR_DIM,
 };
 use doorslam_ipc::{EnvelopeEvent, Feature, Keyframe, PlaceDescriptor};
 use doorslam_place_recognition::matching::Quantized;
@@ -32,7 +33,8 @@ pub struct MatchSettings {
     /// At most this many own keyframes per received descriptor (the nearest).
     pub max_candidates: usize,
     /// Features in a verification packet (the strongest first, as the front-end orders
-    /// them); bounds the packet's size.
+    /// them); bounds the packet's size (the front-end's packet holds at most
+    /// [`MAX_PACKET_FEATURES`]: ≤ 20 kB).
     pub max_packet_features: usize,
     pub verify: VerifyConfig,
 }
@@ -42,7 +44,7 @@ impl Default for MatchSettings {
         Self {
             threshold: 0.8,
             max_candidates: 1,
-            max_packet_features: 475,
+            max_packet_features: MAX_PACKET_FEATURES,
             verify: VerifyConfig::default(),
         }
     }
@@ -85,8 +87,8 @@ pub struct State {
     robot: u8,
     calib: StereoCalibration,
     settings: MatchSettings,
-    /// Own keyframes' features, by keyframe index.
-    features: BTreeMap<u64, Vec<Feature>>,
+    /// Own keyframes' features (strongest first, as the front-end sends them), by index.
+    features: BTreeMap<u64, Vec<doorslam_frontend::Feature>>,
     /// Own descriptors, by keyframe index, in the wire's int8 form.
     descriptors: BTreeMap<u64, Quantized>,
     /// Team-in envelopes and closures waiting to be published to the back-end.
@@ -159,7 +161,12 @@ impl Shared {
             ));
         }
         let n = (kf.n_features as usize).min(kf.features.len());
-        s.features.insert(kf.id, kf.features[..n].to_vec());
+        let sigma = s.settings.verify.disparity_sigma_px;
+        let features = kf.features[..n]
+            .iter()
+            .map(|f| frontend_feature(f, &s.calib, sigma))
+            .collect();
+        s.features.insert(kf.id, features);
         s.stats.keyframes += 1;
         Ok(())
     }
@@ -331,38 +338,30 @@ impl DescriptorSource for Places {
             return None;
         }
         let features = s.features.get(&key::index(k))?;
-        let packet: Vec<VerificationFeature> = features
-            .iter()
-            .filter_map(|f| VerificationFeature::quantize(f).ok())
-            .take(s.settings.max_packet_features)
-            .collect();
-        Some(VerificationFeatures {
-            key: k,
-            features: packet,
-        })
+        match to_packet(k, &s.calib, features, s.settings.max_packet_features) {
+            Ok(p) => Some(p),
+            Err(e) => {
+                tracing::error!("verification packet of {}: {e}", key::label(k));
+                None
+            }
+        }
     }
 }
 
-/// A keyframe feature as verification uses it.
-fn frontend_feature(f: &Feature, calib: &StereoCalibration) -> doorslam_frontend::Feature {
-    // The stereo depth uncertainty for a 0.5 px disparity error (as the odometry's).
+/// A keyframe feature (shared memory) as verification uses it: the depth σ of a
+/// `disparity_sigma_px` disparity error, as the odometry's noise model.
+fn frontend_feature(
+    f: &Feature,
+    calib: &StereoCalibration,
+    disparity_sigma_px: f64,
+) -> doorslam_frontend::Feature {
     let z = f64::from(f.point[2]);
-    let depth_sigma = z * z * 0.5 / (calib.fx * calib.baseline_m);
+    let depth_sigma = z * z * disparity_sigma_px / (calib.fx * calib.baseline_m);
     doorslam_frontend::Feature {
         pixel: f.uv,
         descriptor: f.descriptor,
         point: f.point,
         depth_sigma_m: depth_sigma as f32,
-    }
-}
-
-fn rejection_name(r: &Rejection) -> &'static str {
-    match r {
-        Rejection::TooFewFeatures { .. } => "too_few_features",
-        Rejection::BadFeature { .. } => "bad_feature",
-        Rejection::TooFewMatches { .. } => "too_few_matches",
-        Rejection::NoPose => "no_pose",
-        Rejection::TooFewInliers { .. } => "too_few_inliers",
     }
 }
 
@@ -382,17 +381,12 @@ impl Verifier for PnpVerifier {
             *s.stats.rejected.entry("unknown_keyframe".into()).or_default() += 1;
             return None;
         };
-        let local: Vec<_> = own.iter().map(|f| frontend_feature(f, &calib)).collect();
-        let remote: Vec<_> = packet
-            .features
-            .iter()
-            .map(|f| frontend_feature(&f.to_feature(), &calib))
-            .collect();
-        let verified = match verify(&calib, &local, &remote, &s.settings.verify) {
+        let (remote_calib, remote) = from_packet(packet, s.settings.verify.disparity_sigma_px);
+        let verified = match verify(&calib, own, &remote_calib, &remote, &s.settings.verify) {
             Ok(v) => v,
             Err(r) => {
                 tracing::debug!(peer = %peer, pair = %format!("{} - {}", key::label(m.query), key::label(m.candidate)), "verification: {r}");
-                *s.stats.rejected.entry(rejection_name(&r).into()).or_default() += 1;
+                *s.stats.rejected.entry(r.name().into()).or_default() += 1;
                 return None;
             }
         };

@@ -13,9 +13,9 @@ use std::sync::{Arc, Mutex};
 
 use doorslam_geometry::{key, SE3};
 use doorslam_ipc::wire::{
-    f16_from_f32, Body, CompactPose, Descriptor, Estimate, Header, Information, LoopClosure, Match,
-    Pose,
-    PoseEstimate, PoseEstimates, RobotId, Stage, VerificationFeature, VerificationFeatures,
+    Body, CompactPose, Descriptor, Estimate, Header, Information, LoopClosure, Match, Pose,
+    PoseEstimate, PoseEstimates, RobotId, Stage, VerificationCamera, VerificationFeature,
+    VerificationFeatures,
     DESCRIPTOR_DIM,
 };
 
@@ -205,16 +205,22 @@ impl DescriptorSource for SimPlaces {
                 let h = mix(self.world.seed ^ k ^ (j << 20));
                 VerificationFeature {
                     pixel: [(h % 12_000) as u16, ((h >> 16) % 7_600) as u16],
+                    disparity: 64 + ((h >> 32) % 4_000) as u16,
                     descriptor: std::array::from_fn(|b| (mix(h ^ b as u64) & 0xff) as u8),
-                    point: [
-                        f16_from_f32(unit(h) * 5.0),
-                        f16_from_f32(unit(h >> 8) * 2.0),
-                        f16_from_f32(2.0 + 20.0 * unit(h >> 4).abs()),
-                    ],
                 }
             })
             .collect();
-        Some(VerificationFeatures { key: k, features })
+        Some(VerificationFeatures {
+            key: k,
+            camera: VerificationCamera {
+                fx: 458.0,
+                fy: 458.0,
+                cx: 376.0,
+                cy: 240.0,
+                baseline_m: 0.11,
+            },
+            features,
+        })
     }
 }
 
