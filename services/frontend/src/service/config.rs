@@ -4,7 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
-use doorslam_dataset::{Dataset, Layout, StereoCalibration};
+use doorslam_dataset::{Dataset, StereoCalibration};
 use doorslam_ipc::{MAX_FRAME_HEIGHT, MAX_FRAME_WIDTH, MAX_KEYFRAME_FEATURES};
 use serde::Deserialize;
 
@@ -201,15 +201,9 @@ impl Calibration {
         let (path, stereo, width, height) = match source {
             CalibrationSource::Dataset(dir) => {
                 let dataset = Dataset::open(dir).map_err(file)?;
-                if dataset.layout == Layout::Euroc {
-                    return Err(bad(
-                        dir,
-                        "EuRoC frames are not rectified: the frontend service needs rectified \
-                         frames and a calib.txt (P0/P1)"
-                            .into(),
-                    ));
-                }
-                let stereo = dataset.calibration().map_err(file)?;
+                // The replay publishes EuRoC pairs rectified (same size): the calibration
+                // of the rectified pair; KITTI layouts are rectified on disk.
+                let stereo = dataset.stereo().map_err(file)?.calibration;
                 let first = dataset.frames.first().ok_or_else(|| {
                     bad(
                         dir,
