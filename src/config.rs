@@ -23,6 +23,8 @@ pub struct RobotConfig {
     pub up: UpSection,
     #[serde(default)]
     pub team: doorslam_team::runner::TeamSection,
+    #[serde(default)]
+    pub place: doorslam_place_recognition::service::PlaceSection,
 }
 
 /// `[sim_keyframes]`: the simulation stand-in for the front-end (never visual odometry).
@@ -126,6 +128,7 @@ impl RobotConfig {
         self.camera.validate()?;
         self.backend.validate()?;
         self.team.validate()?;
+        self.place.validate()?;
         if self.sim_keyframes.every == 0 {
             bail!("sim_keyframes.every must be >= 1");
         }

@@ -34,10 +34,7 @@ fn help_lists_every_subcommand() {
 
 #[test]
 fn unfinished_commands_fail_clearly_without_panicking() {
-    let pending = [
-        (vec!["service", "frontend"], "front-end"),
-        (vec!["service", "place-recognition"], "place-recognition"),
-    ];
+    let pending = [(vec!["service", "frontend"], "front-end")];
     for (args, issue) in pending {
         let out = doorslam(&args);
         let err = stderr(&out);
@@ -719,4 +716,32 @@ fn place_eval_prints_the_documented_fields_and_names_a_missing_model() {
         "{json}"
     );
     assert!(std::fs::read_to_string(&svg).unwrap().contains("<polyline"));
+}
+
+#[test]
+fn place_recognition_service_names_a_missing_vocabulary_and_bad_place_settings() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("robot.toml");
+    let cfg_arg = cfg.to_str().unwrap();
+    std::fs::write(
+        &cfg,
+        "[robot]\nid = \"plcli\"\n[place]\nvocabulary = \"/nonexistent/v.voc\"\n",
+    )
+    .unwrap();
+    let out = doorslam(&["service", "place-recognition", "--config", cfg_arg]);
+    assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
+    let err = stderr(&out);
+    assert!(err.contains("/nonexistent/v.voc"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+
+    for (text, named) in [
+        ("[place]\nbatch_size = 0\n", "place.batch_size"),
+        ("[place]\nmethod = \"cosplace\"\n", "cosplace"),
+        ("[place]\nmatch_treshold = 0.3\n", "match_treshold"),
+    ] {
+        std::fs::write(&cfg, text).unwrap();
+        let out = doorslam(&["service", "place-recognition", "--config", cfg_arg]);
+        assert_eq!(out.status.code(), Some(1), "{text}: {}", stderr(&out));
+        assert!(stderr(&out).contains(named), "{text}: {}", stderr(&out));
+    }
 }
