@@ -120,6 +120,7 @@ def variants(X, pairs, d=128):
     ev, U = np.linalg.eigh(C)
     o = np.argsort(ev)[::-1]
     ev, U = ev[o], U[:, o]
+    print(f"the {d} leading components keep {ev[:d].sum() / ev.sum():.3f} of the variance")
     out = {"full": lambda V: V}
     for w in [0.0, 0.5, 1.0]:
         W = U[:, :d] / np.maximum(ev[:d], ev[0] * 1e-6) ** (w / 2)
