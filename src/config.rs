@@ -27,6 +27,8 @@ pub struct RobotConfig {
     #[serde(default)]
     pub team: doorslam_team::runner::TeamSection,
     #[serde(default)]
+    pub place: doorslam_place_recognition::service::PlaceSection,
+    #[serde(default)]
     pub rendezvous: doorslam_rendezvous::RendezvousSection,
 }
 
@@ -147,6 +149,7 @@ impl RobotConfig {
         self.backend.validate()?;
         self.frontend.validate()?;
         self.team.validate()?;
+        self.place.validate()?;
         self.rendezvous.validate().map_err(anyhow::Error::msg)?;
         if self.sim_keyframes.every == 0 {
             bail!("sim_keyframes.every must be >= 1");

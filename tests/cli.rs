@@ -34,21 +34,6 @@ fn help_lists_every_subcommand() {
 }
 
 #[test]
-fn unfinished_commands_fail_clearly_without_panicking() {
-    let pending = [(vec!["service", "place-recognition"], "place-recognition")];
-    for (args, issue) in pending {
-        let out = doorslam(&args);
-        let err = stderr(&out);
-        assert_eq!(out.status.code(), Some(1), "{args:?}: {err}");
-        assert!(
-            err.contains("not built yet") && err.contains(issue),
-            "{args:?}: {err}"
-        );
-        assert!(!err.contains("panicked"), "{args:?}: {err}");
-    }
-}
-
-#[test]
 fn dpgo_names_bad_input() {
     let out = doorslam(&["dpgo", "/nonexistent/team.g2o"]);
     assert_eq!(out.status.code(), Some(1));
@@ -786,4 +771,32 @@ fn frontend_service_names_a_missing_or_bad_calibration_and_unknown_keys() {
     // A replay of a folder that is no dataset: the folder is named.
     let err = run("[camera]\nsource = \"replay\"\n[camera.replay]\npath = \"/nonexistent/seq\"\n");
     assert!(err.contains("/nonexistent/seq"), "{err}");
+}
+
+#[test]
+fn place_recognition_service_names_a_missing_vocabulary_and_bad_place_settings() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("robot.toml");
+    let cfg_arg = cfg.to_str().unwrap();
+    std::fs::write(
+        &cfg,
+        "[robot]\nid = \"plcli\"\n[place]\nvocabulary = \"/nonexistent/v.voc\"\n",
+    )
+    .unwrap();
+    let out = doorslam(&["service", "place-recognition", "--config", cfg_arg]);
+    assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
+    let err = stderr(&out);
+    assert!(err.contains("/nonexistent/v.voc"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+
+    for (text, named) in [
+        ("[place]\nbatch_size = 0\n", "place.batch_size"),
+        ("[place]\nmethod = \"cosplace\"\n", "cosplace"),
+        ("[place]\nmatch_treshold = 0.3\n", "match_treshold"),
+    ] {
+        std::fs::write(&cfg, text).unwrap();
+        let out = doorslam(&["service", "place-recognition", "--config", cfg_arg]);
+        assert_eq!(out.status.code(), Some(1), "{text}: {}", stderr(&out));
+        assert!(stderr(&out).contains(named), "{text}: {}", stderr(&out));
+    }
 }

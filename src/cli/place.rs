@@ -7,9 +7,14 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand, ValueEnum};
 use doorslam_ipc::wire::Descriptor;
-use doorslam_place_recognition::bow::{default_vocabulary_path, orb_descriptors, Vocabulary};
+use doorslam_place_recognition::bow::{
+    default_vocabulary_path, keyframe_descriptors, orb_descriptors, Vocabulary, WIRE_DIM,
+    WIRE_WHITENING,
+};
 use doorslam_place_recognition::describer::BOW_FEATURES;
-use doorslam_place_recognition::eval::{pr_curve, svg, EvalSet, Keyframe};
+use doorslam_place_recognition::eval::{
+    at_threshold, pr_curve, svg, threshold_at_precision, EvalSet, Keyframe,
+};
 use doorslam_place_recognition::matching::{
     distance2, nearest, time_brute_force, wire_bytes_per_descriptor, Quantized,
 };
@@ -52,7 +57,7 @@ pub struct DescriberArgs {
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// BoW vocabulary [default: $DOORSLAM_BOW_VOCABULARY, else
-    /// $DOORSLAM_HOME/models/bow-orb-1024.voc].
+    /// $DOORSLAM_HOME/models/bow-orb-1024-w128.voc].
     #[arg(long)]
     pub vocabulary: Option<PathBuf>,
     /// onnxruntime intra-op threads (1 = the one-core figure).
@@ -61,6 +66,17 @@ pub struct DescriberArgs {
     /// Every N-th frame is a keyframe.
     #[arg(long, default_value_t = 1)]
     pub stride: usize,
+    /// Bag of words: ORB's own detector on the left image (what the vocabulary trains on)
+    /// or the front-end's keyframe features (GFTT + upright ORB with a stereo match: what
+    /// `Keyframe` samples carry; needs the right images).
+    #[arg(long, value_enum, default_value = "orb")]
+    pub features: FeaturesArg,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum FeaturesArg {
+    Orb,
+    Frontend,
 }
 
 #[derive(Debug, Args)]
@@ -83,6 +99,14 @@ pub struct EvalArgs {
     /// Match on the int8 wire form (integer dot products) instead of float.
     #[arg(long)]
     pub int8: bool,
+    /// Match on the 128-D wire form in float (bag of words: its PCA projection; NetVLAD:
+    /// its first 128 values), without the int8 rounding.
+    #[arg(long, conflicts_with = "int8")]
+    pub projected: bool,
+    /// Also print (stderr) precision and recall at this match threshold [default with
+    /// --int8: the method's default threshold, the one the service uses].
+    #[arg(long)]
+    pub threshold: Option<f64>,
     /// Where to write the precision-recall curve [default: pr_<method>[_int8].svg].
     #[arg(long)]
     pub svg: Option<PathBuf>,
@@ -113,6 +137,10 @@ pub struct VocabularyArgs {
     /// Every N-th frame trains.
     #[arg(long, default_value_t = 2)]
     pub stride: usize,
+    /// Whitening power of the 128-D wire projection fitted on the same images (0: plain
+    /// PCA, 1: full whitening).
+    #[arg(long, default_value_t = WIRE_WHITENING)]
+    pub whiten: f64,
     #[arg(long)]
     pub json: bool,
 }
@@ -165,22 +193,65 @@ fn load_image(path: &Path) -> Result<GrayImage> {
         .with_context(|| format!("{}: empty image", path.display()))
 }
 
-/// Descriptors of all keyframes in batches of 8, and the describe time per image
-/// (preprocessing included, PNG decoding excluded).
-fn describe_all(describer: &mut Describer, keyframes: &[Keyframe]) -> Result<(Vec<Vec<f32>>, f64)> {
+/// Descriptors of all keyframes in batches of 8 (with `wire`: their 128-D wire form), and
+/// the describe time per image (preprocessing included, PNG decoding excluded).
+fn describe_all(
+    describer: &mut Describer,
+    keyframes: &[Keyframe],
+    features: FeaturesArg,
+    wire: bool,
+) -> Result<(Vec<Vec<f32>>, f64)> {
     let mut out = Vec::with_capacity(keyframes.len());
     let mut seconds = 0.0;
     // One untimed run first: onnxruntime allocates its buffers on the first inference.
     if let Some(first) = keyframes.first() {
         describer.describe(&[load_image(&first.image)?])?;
     }
+    let mut extractor = match (features, &*describer) {
+        (FeaturesArg::Orb, _) => None,
+        (FeaturesArg::Frontend, Describer::BagOfWords(_)) => Some(
+            doorslam_frontend::stereo::Extractor::new(&doorslam_frontend::VoConfig::default())?,
+        ),
+        (FeaturesArg::Frontend, Describer::NetVlad(_)) => {
+            bail!("--features frontend is for the bag of words (NetVLAD describes images)")
+        }
+    };
     for (i, chunk) in keyframes.chunks(8).enumerate() {
         let images = chunk
             .iter()
             .map(|k| load_image(&k.image))
             .collect::<Result<Vec<_>>>()?;
+        let rights = match extractor {
+            Some(_) => chunk
+                .iter()
+                .map(|k| {
+                    let right = k.right.as_ref().with_context(|| {
+                        format!(
+                            "{}: no right image for --features frontend",
+                            k.image.display()
+                        )
+                    })?;
+                    load_image(right)
+                })
+                .collect::<Result<Vec<_>>>()?,
+            None => Vec::new(),
+        };
         let start = Instant::now();
-        out.extend(describer.describe(&images)?);
+        let described = match (&mut extractor, &mut *describer) {
+            (Some(x), Describer::BagOfWords(voc)) => images
+                .iter()
+                .zip(&rights)
+                .map(|(l, r)| Ok(voc.describe(&keyframe_descriptors(x, l, r)?)))
+                .collect::<Result<Vec<_>>>()?,
+            (_, d) => d.describe(&images)?,
+        };
+        if wire {
+            for d in &described {
+                out.push(describer.to_wire(d)?);
+            }
+        } else {
+            out.extend(described);
+        }
         seconds += start.elapsed().as_secs_f64();
         if i % 25 == 24 {
             eprintln!(
@@ -198,7 +269,8 @@ fn describe(a: DescribeArgs) -> Result<()> {
         .or_else(|_| keyframes_without_truth(&a.dir, a.describer.stride))
         .with_context(|| format!("reading {}", a.dir.display()))?;
     let mut describer = open_describer(&a.describer)?;
-    let (descriptors, ms) = describe_all(&mut describer, &set.keyframes)?;
+    let (descriptors, ms) =
+        describe_all(&mut describer, &set.keyframes, a.describer.features, false)?;
     let mut text = format!(
         "# doorslam place descriptors: method={} dim={}\n# robot frame values...\n",
         describer.method().name(),
@@ -241,6 +313,7 @@ fn keyframes_without_truth(dir: &Path, stride: usize) -> Result<EvalSet> {
             robot: "0".into(),
             frame: f.index,
             image: f.left.clone(),
+            right: Some(f.right.clone()),
             pose: nalgebra::Isometry3::identity(),
         })
         .collect();
@@ -254,19 +327,14 @@ fn eval(a: EvalArgs) -> Result<()> {
     let set = EvalSet::load(&a.dirs, a.describer.stride)?;
     let mut describer = open_describer(&a.describer)?;
     let method = describer.method().name();
-    if a.int8 && describer.dim() != doorslam_ipc::wire::DESCRIPTOR_DIM {
-        bail!(
-            "--int8 needs {}-D descriptors (the wire form); {method} gives {}",
-            doorslam_ipc::wire::DESCRIPTOR_DIM,
-            describer.dim()
-        );
-    }
+    let wire = a.int8 || a.projected;
     eprintln!(
         "place eval: {} keyframes, {} true inter-robot pairs",
         set.keyframes.len(),
         set.positives.len() / 2
     );
-    let (descriptors, ms) = describe_all(&mut describer, &set.keyframes)?;
+    let (descriptors, ms) =
+        describe_all(&mut describer, &set.keyframes, a.describer.features, wire)?;
     let allowed = |q: usize, d: usize| set.inter_robot(q, d);
     let (nn, bytes) = if a.int8 {
         let quantized = descriptors
@@ -284,6 +352,7 @@ fn eval(a: EvalArgs) -> Result<()> {
         let nn = nearest(&descriptors, &descriptors, |x, y| distance2(x, y), allowed);
         // Float: 4 bytes per value (BoW: the non-zero entries, u16 word + f32 weight).
         let bytes = match describer {
+            _ if a.projected => 4.0 * WIRE_DIM as f64,
             Describer::NetVlad(_) => 4.0 * describer.dim() as f64,
             Describer::BagOfWords(_) => {
                 let nonzero: usize = descriptors
@@ -296,13 +365,20 @@ fn eval(a: EvalArgs) -> Result<()> {
         (nn, bytes)
     };
     let curve = pr_curve(&set, &nn);
-    let label = format!("{method}{}", if a.int8 { " int8" } else { "" });
-    let svg_path = a.svg.clone().unwrap_or_else(|| {
-        PathBuf::from(format!(
-            "pr_{method}{}.svg",
-            if a.int8 { "_int8" } else { "" }
-        ))
-    });
+    let form = match (a.int8, a.projected) {
+        (true, _) => "_int8",
+        (_, true) => "_projected",
+        _ => "",
+    };
+    let features = match a.describer.features {
+        FeaturesArg::Frontend => "_frontend",
+        FeaturesArg::Orb => "",
+    };
+    let label = format!("{method}{form}{features}").replace('_', " ");
+    let svg_path = a
+        .svg
+        .clone()
+        .unwrap_or_else(|| PathBuf::from(format!("pr_{method}{form}{features}.svg")));
     std::fs::write(&svg_path, svg(&[(&label, &curve)]))
         .with_context(|| format!("writing {}", svg_path.display()))?;
     eprintln!(
@@ -310,6 +386,26 @@ fn eval(a: EvalArgs) -> Result<()> {
         svg_path.display(),
         curve.queries_with_positive
     );
+    // The match threshold from this descriptor's own curve (BENCHMARKS.md: the defaults).
+    for precision in [0.8, 0.9, 0.95] {
+        match threshold_at_precision(&curve, precision) {
+            Some((t, recall)) => eprintln!(
+                "place eval: threshold for precision >= {precision}: {t:.4} (recall {recall:.3})"
+            ),
+            None => eprintln!("place eval: no threshold reaches precision {precision}"),
+        }
+    }
+    let threshold = a.threshold.or(a
+        .int8
+        .then(|| f64::from(describer.method().default_threshold())));
+    if let Some(t) = threshold {
+        match at_threshold(&curve, t) {
+            Some((recall, precision)) => eprintln!(
+                "place eval: at threshold {t:.4}: precision {precision:.3}, recall {recall:.3}"
+            ),
+            None => eprintln!("place eval: threshold {t:.4} accepts no match"),
+        }
+    }
     let json = serde_json::json!({
         "method": method,
         "queries": curve.queries,
@@ -351,13 +447,16 @@ fn vocabulary(a: VocabularyArgs) -> Result<()> {
             );
         }
     }
-    let voc = Vocabulary::train(&images, a.words, a.iterations, 1).with_context(|| {
+    let mut voc = Vocabulary::train(&images, a.words, a.iterations, 1).with_context(|| {
         format!(
             "{} training images have fewer than {} ORB features",
             images.len(),
             a.words
         )
     })?;
+    // The wire form: PCA of the same images' TF-IDF vectors to 128-D.
+    voc.fit_projection(&images, WIRE_DIM.min(a.words), a.whiten)
+        .context("fitting the 128-D wire projection")?;
     if let Some(parent) = a.out.parent() {
         std::fs::create_dir_all(parent)?;
     }
@@ -368,6 +467,8 @@ fn vocabulary(a: VocabularyArgs) -> Result<()> {
         "words": a.words,
         "images": images.len(),
         "features": images.iter().map(Vec::len).sum::<usize>(),
+        "wire_dim": WIRE_DIM.min(a.words),
+        "whiten": a.whiten,
         "seconds": start.elapsed().as_secs_f64(),
     });
     if a.json {
@@ -389,6 +490,7 @@ fn single_image(path: &Path) -> EvalSet {
             robot: "0".into(),
             frame: 0,
             image: path.to_path_buf(),
+            right: None,
             pose: nalgebra::Isometry3::identity(),
         }],
         positives: Default::default(),
@@ -421,6 +523,7 @@ fn keyframes_of_any(dir: &Path, stride: usize) -> Result<EvalSet> {
                 robot: "0".into(),
                 frame: i,
                 image,
+                right: None,
                 pose: nalgebra::Isometry3::identity(),
             })
             .collect(),

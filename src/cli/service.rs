@@ -63,7 +63,11 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             Ok(())
         }
         ServiceName::PlaceRecognition => {
-            bail!("service place-recognition is not built yet: it arrives with the place-recognition issue (next wave)")
+            let c = config.place.for_robot(&config.robot.id, config.robot.index);
+            // Stopped by SIGTERM/SIGINT (iceoryx2's node sees them): `stop` stays unset.
+            let stop = std::sync::atomic::AtomicBool::new(false);
+            doorslam_place_recognition::service::run(&c, &stop)?;
+            Ok(())
         }
         ServiceName::Backend => {
             let c = config

@@ -14,14 +14,23 @@ use rayon::prelude::*;
 
 use crate::image::GrayImage;
 use crate::model::PlaceRecognitionError;
+use crate::projection::Projection;
 
 /// A 256-bit ORB descriptor.
 pub type Orb = [u8; 32];
 
-const MAGIC: &[u8; 8] = b"DSBOWV01";
+/// Words and idf only (the first format: no wire form).
+const MAGIC_V1: &[u8; 8] = b"DSBOWV01";
+/// Words, idf, then the projection to the 128-D wire form ([`Projection::to_bytes`]).
+const MAGIC_V2: &[u8; 8] = b"DSBOWV02";
 
-/// File name of the default vocabulary inside `$DOORSLAM_HOME/models/`.
-pub const DEFAULT_VOCABULARY_FILE: &str = "bow-orb-1024.voc";
+/// File name of the default vocabulary inside `$DOORSLAM_HOME/models/` (with its 128-D
+/// wire projection; the name changed with the format so `deploy/setup` builds it anew).
+pub const DEFAULT_VOCABULARY_FILE: &str = "bow-orb-1024-w128.voc";
+/// Components of the wire projection (the int8 wire descriptor's length).
+pub const WIRE_DIM: usize = doorslam_ipc::wire::DESCRIPTOR_DIM;
+/// Whitening power of the wire projection (chosen on the validation town, BENCHMARKS.md).
+pub const WIRE_WHITENING: f64 = 0.0;
 /// Environment variable naming the vocabulary file (written into the env file by deploy/setup).
 pub const VOCABULARY_ENV: &str = "DOORSLAM_BOW_VOCABULARY";
 
@@ -44,6 +53,9 @@ pub struct Vocabulary {
     pub words: Vec<Orb>,
     /// idf_w = ln(N / n_w): N training images, n_w of them contain word w.
     pub idf: Vec<f32>,
+    /// TF-IDF vector -> 128-D wire form, fitted on the training images
+    /// ([`Vocabulary::fit_projection`]); `None` in a first-format file.
+    pub projection: Option<Projection>,
 }
 
 /// A tiny deterministic generator (xorshift64*) for the vocabulary's seeding.
@@ -99,6 +111,7 @@ impl Vocabulary {
         let mut vocabulary = Self {
             idf: vec![0.0; k],
             words,
+            projection: None,
         };
         let mut containing = vec![0u32; k];
         for img in images {
@@ -140,12 +153,41 @@ impl Vocabulary {
         v
     }
 
+    /// Fits the wire projection (PCA of the TF-IDF vectors of the training images, to
+    /// `d_out` components, whitening power `whiten`).
+    pub fn fit_projection(
+        &mut self,
+        images: &[Vec<Orb>],
+        d_out: usize,
+        whiten: f64,
+    ) -> Result<(), crate::projection::FitError> {
+        let vectors: Vec<Vec<f32>> = images.par_iter().map(|d| self.describe(d)).collect();
+        self.projection = Some(Projection::fit(&vectors, d_out, whiten)?);
+        Ok(())
+    }
+
+    /// The wire form of a TF-IDF vector ([`Self::describe`]'s output): its 128 principal
+    /// components (not normalized again: see [`crate::projection`]); `None` without a
+    /// projection.
+    pub fn project(&self, tf_idf: &[f32]) -> Option<Vec<f32>> {
+        self.projection.as_ref().map(|p| p.apply(tf_idf))
+    }
+
+    /// The file's bytes: the second format when there is a projection, else the first.
     pub fn to_bytes(&self) -> Vec<u8> {
-        let mut out = MAGIC.to_vec();
+        let magic = if self.projection.is_some() {
+            MAGIC_V2
+        } else {
+            MAGIC_V1
+        };
+        let mut out = magic.to_vec();
         out.extend((self.words.len() as u32).to_le_bytes());
         for (w, idf) in self.words.iter().zip(&self.idf) {
             out.extend(w);
             out.extend(idf.to_le_bytes());
+        }
+        if let Some(p) = &self.projection {
+            out.extend(p.to_bytes());
         }
         out
     }
@@ -161,19 +203,35 @@ impl Vocabulary {
                 "{e} (build it with `doorslam place vocabulary DIR... --out FILE`)"
             ))
         })?;
-        let rest = bytes
-            .strip_prefix(MAGIC)
-            .ok_or_else(|| bad("not a doorslam BoW vocabulary (bad magic)".into()))?;
+        let (rest, projected) = if let Some(rest) = bytes.strip_prefix(MAGIC_V2) {
+            (rest, true)
+        } else if let Some(rest) = bytes.strip_prefix(MAGIC_V1) {
+            (rest, false)
+        } else {
+            return Err(bad("not a doorslam BoW vocabulary (bad magic)".into()));
+        };
         let (k, body) = rest
             .split_first_chunk::<4>()
             .ok_or_else(|| bad("truncated header".into()))?;
         let k = u32::from_le_bytes(*k) as usize;
-        if k == 0 || body.len() != k * 36 {
+        let words_len = k.saturating_mul(36);
+        let short = if projected {
+            body.len() < words_len
+        } else {
+            body.len() != words_len
+        };
+        if k == 0 || short {
             return Err(bad(format!(
                 "{} bytes of words, expected {k} x 36",
                 body.len()
             )));
         }
+        let (body, projection) = body.split_at(words_len);
+        let projection = if projected {
+            Some(Projection::from_bytes(projection, k).map_err(bad)?)
+        } else {
+            None
+        };
         let mut words = Vec::with_capacity(k);
         let mut idf = Vec::with_capacity(k);
         for chunk in body.chunks_exact(36) {
@@ -184,7 +242,11 @@ impl Vocabulary {
             }
             idf.push(v);
         }
-        Ok(Self { words, idf })
+        Ok(Self {
+            words,
+            idf,
+            projection,
+        })
     }
 }
 
@@ -209,6 +271,31 @@ pub fn orb_descriptors(
     let features =
         doorslam_frontend::detect_orb(&mat, max_features).map_err(|e| orb(e.to_string()))?;
     Ok(features.descriptors)
+}
+
+/// The ORB descriptors a front-end keyframe carries for this stereo pair: its detector's
+/// features (GFTT + upright ORB by default) that found a stereo match, as in
+/// `doorslam_frontend::StereoVo`'s keyframes.
+pub fn keyframe_descriptors(
+    extractor: &mut doorslam_frontend::stereo::Extractor,
+    left: &GrayImage,
+    right: &GrayImage,
+) -> Result<Vec<Orb>, PlaceRecognitionError> {
+    fn orb(e: doorslam_frontend::FrontendError) -> PlaceRecognitionError {
+        PlaceRecognitionError::Orb(e.to_string())
+    }
+    fn gray(img: &GrayImage) -> Result<doorslam_frontend::Gray<'_>, PlaceRecognitionError> {
+        doorslam_frontend::Gray::new(img.width, img.height, &img.pixels).map_err(orb)
+    }
+    let (l, r) = (gray(left)?, gray(right)?);
+    let features = extractor.extract(&l, &r).map_err(orb)?;
+    Ok(features
+        .features
+        .iter()
+        .filter(|f| f.disparity.is_some())
+        .take(doorslam_ipc::MAX_KEYFRAME_FEATURES)
+        .map(|f| f.descriptor)
+        .collect())
 }
 
 #[cfg(test)]
@@ -239,7 +326,7 @@ mod tests {
                     .collect()
             })
             .collect();
-        let voc = Vocabulary::train(&images, 4, 10, 1).unwrap();
+        let mut voc = Vocabulary::train(&images, 4, 10, 1).unwrap();
         for c in &centres {
             assert_eq!(hamming(&voc.words[voc.word(c)], c), 0);
             // Each word is in 3 of 4 images: idf = ln(4/3).
@@ -252,6 +339,25 @@ mod tests {
         let path = dir.path().join("voc.bin");
         std::fs::write(&path, voc.to_bytes()).unwrap();
         assert_eq!(Vocabulary::from_file(&path).unwrap(), voc);
+        // With the wire projection (second format): 4 words -> 2 components.
+        let first_format = voc.clone();
+        voc.fit_projection(&images, 2, 0.0).unwrap();
+        let w = voc.project(&voc.describe(&images[1])).unwrap();
+        assert_eq!(w.len(), 2);
+        assert!(
+            w.iter().all(|x| x.is_finite()) && w.iter().any(|x| *x != 0.0),
+            "{w:?}"
+        );
+        std::fs::write(&path, voc.to_bytes()).unwrap();
+        assert_eq!(Vocabulary::from_file(&path).unwrap(), voc);
+        assert_eq!(first_format.project(&w), None);
+        std::fs::write(&path, &voc.to_bytes()[..voc.to_bytes().len() - 4]).unwrap();
+        let err = Vocabulary::from_file(&path).unwrap_err().to_string();
+        assert!(
+            err.contains("voc.bin") && err.contains("projection"),
+            "{err}"
+        );
+        let voc = first_format;
         std::fs::write(&path, &voc.to_bytes()[..50]).unwrap();
         let err = Vocabulary::from_file(&path).unwrap_err().to_string();
         assert!(

@@ -34,12 +34,16 @@ pub enum EvalError {
     Dataset(#[from] doorslam_dataset::DatasetError),
 }
 
-/// One keyframe to describe: its image file and ground-truth pose.
+/// One keyframe to describe: its image files and ground-truth pose.
 #[derive(Debug, Clone)]
 pub struct Keyframe {
     pub robot: String,
     pub frame: usize,
+    /// The left image.
     pub image: PathBuf,
+    /// The right image, when the folder is a stereo dataset (the front-end's features
+    /// need both).
+    pub right: Option<PathBuf>,
     pub pose: Isometry3<f64>,
 }
 
@@ -70,6 +74,7 @@ fn robot_keyframes(dir: &Path, robot: &str, stride: usize) -> Result<Vec<Keyfram
             robot: robot.to_string(),
             frame: f.index,
             image: f.left.clone(),
+            right: Some(f.right.clone()),
             pose: *pose,
         })
         .collect())
@@ -248,6 +253,28 @@ pub fn pr_curve(set: &EvalSet, nearest: &[Option<(usize, f32)>]) -> PrCurve {
     }
 }
 
+/// The match threshold of a curve at precision `precision`: the distance between the last
+/// match at which precision is still at least `precision` and the next one (so every match
+/// up to it, and none after, is accepted by `distance < threshold`), with the recall there.
+/// `None` when no match reaches that precision.
+pub fn threshold_at_precision(curve: &PrCurve, precision: f64) -> Option<(f64, f64)> {
+    let last = curve.points.iter().rposition(|p| p.2 >= precision)?;
+    let (d, recall, _) = curve.points[last];
+    let threshold = match curve.points.get(last + 1) {
+        Some(next) => 0.5 * (d + next.0),
+        None => d + 1e-3,
+    };
+    Some((threshold, recall))
+}
+
+/// Recall and precision of the matches a threshold accepts (`distance < threshold`);
+/// `None` when it accepts none.
+pub fn at_threshold(curve: &PrCurve, threshold: f64) -> Option<(f64, f64)> {
+    let accepted = curve.points.partition_point(|p| p.0 < threshold);
+    let (_, recall, precision) = *curve.points.get(accepted.checked_sub(1)?)?;
+    Some((recall, precision))
+}
+
 /// The curves as one SVG plot (recall on x, precision on y).
 pub fn svg(curves: &[(&str, &PrCurve)]) -> String {
     let (w, h, m) = (480.0, 360.0, 50.0);
@@ -309,6 +336,7 @@ mod tests {
                     robot: format!("{}", i % 2),
                     frame: i,
                     image: PathBuf::new(),
+                    right: None,
                     pose: Isometry3::identity(),
                 })
                 .collect(),
@@ -333,6 +361,18 @@ mod tests {
         // Points: (1/3, 1), (1/3, 1/2), (2/3, 2/3), (2/3, 1/2).
         assert!((c.auc - (1.0 / 3.0 + 2.0 / 9.0)).abs() < 1e-12, "{}", c.auc);
         assert!((c.precision_at_recall_0_5 - 2.0 / 3.0).abs() < 1e-12);
+        // Precision >= 0.9 holds up to the first match only (0.1; the next is at 0.2).
+        let (t, r) = threshold_at_precision(&c, 0.9).unwrap();
+        assert!(
+            (t - 0.15).abs() < 1e-6 && (r - 1.0 / 3.0).abs() < 1e-12,
+            "{t} {r}"
+        );
+        // Precision >= 0.6 last holds at the third match (2/3 at 0.3).
+        let (t, r) = threshold_at_precision(&c, 0.6).unwrap();
+        assert!(
+            (t - 0.35).abs() < 1e-6 && (r - 2.0 / 3.0).abs() < 1e-12,
+            "{t} {r}"
+        );
         assert!(svg(&[("test", &c)]).contains("<polyline"));
     }
 }

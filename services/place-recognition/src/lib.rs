@@ -9,6 +9,9 @@
 //!   k-majority, TF-IDF);
 //! - [`describer`]: both behind one interface; [`image`]: preprocessing;
 //! - [`matching`]: distances, also on the int8 wire form with integer dot products;
+//! - [`index`]: one robot's keyframes on the int8 form, matched against received ones;
+//! - [`projection`]: PCA to the 128-D wire form (the bag of words' wire form);
+//! - [`service`]: the `place-recognition` service (keyframes in, descriptors out);
 //! - [`eval`]: precision-recall of inter-robot matches against ground truth;
 //! - [`onnx`]: a small writer of ONNX files (tests build models without downloads);
 //!   [`model`]: a `[batch, d] -> [batch, d']` model and the onnxruntime environment.
@@ -17,12 +20,16 @@ pub mod bow;
 pub mod describer;
 pub mod eval;
 pub mod image;
+pub mod index;
 pub mod matching;
 pub mod model;
 pub mod netvlad;
 pub mod onnx;
+pub mod projection;
+pub mod service;
 
-pub use describer::{Describer, Method};
+pub use describer::{Describer, KeyframeInput, Method};
 pub use image::GrayImage;
+pub use index::{IndexError, MatchIndex};
 pub use model::{DescriptorModel, PlaceRecognitionError};
 pub use netvlad::NetVlad;

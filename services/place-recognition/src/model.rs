@@ -28,6 +28,10 @@ pub enum PlaceRecognitionError {
     Orb(String),
     #[error("running model {model}: {reason}")]
     Run { model: String, reason: String },
+    #[error("keyframe {index} of the batch has no {what}")]
+    MissingInput { index: usize, what: &'static str },
+    #[error("no 128-D wire form: {0}")]
+    NoWireForm(String),
 }
 
 /// The process-wide onnxruntime environment, loaded once from `ORT_DYLIB_PATH`.

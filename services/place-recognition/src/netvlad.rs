@@ -148,6 +148,14 @@ impl NetVlad {
         &mut self,
         images: &[GrayImage],
     ) -> Result<Vec<Vec<f32>>, PlaceRecognitionError> {
+        self.describe_refs(&images.iter().collect::<Vec<_>>())
+    }
+
+    /// [`Self::describe`] of borrowed images (no copy of a batch the caller holds).
+    pub fn describe_refs(
+        &mut self,
+        images: &[&GrayImage],
+    ) -> Result<Vec<Vec<f32>>, PlaceRecognitionError> {
         if images.is_empty() {
             return Ok(Vec::new());
         }

@@ -131,14 +131,92 @@ pub fn projection_head(d_in: usize, d_out: usize, w: &[f32], b: &[f32]) -> Optio
                 &[Dim::Named("batch"), Dim::Fixed(d_out as u64)],
             ),
         );
+    Some(model(graph))
+}
+
+/// A small image-descriptor model with the NetVLAD contract (`model/README.md`): input
+/// `[batch, channels, height, width]`, output `[batch, d_out]`,
+/// `descriptor = L2normalize(flatten(image) · W + b)`.
+///
+/// `W` is `[channels·height·width, d_out]` row-major, `b` is `[d_out]`. Tests use it in
+/// place of the real network (a random `W` is a random projection of the pixels: views of
+/// the same image land near each other). `None` if the sizes disagree.
+pub fn image_head(
+    channels: usize,
+    height: usize,
+    width: usize,
+    d_out: usize,
+    w: &[f32],
+    b: &[f32],
+) -> Option<Vec<u8>> {
+    let d_in = channels * height * width;
+    if d_in == 0 || d_out == 0 || w.len() != d_in * d_out || b.len() != d_out {
+        return None;
+    }
+    let graph = Msg::default()
+        .msg(
+            1,
+            node(
+                "Flatten",
+                "flatten",
+                &["image"],
+                &["pixels"],
+                &[("axis", 1)],
+            ),
+        )
+        .msg(
+            1,
+            node("MatMul", "project", &["pixels", "W"], &["projected"], &[]),
+        )
+        .msg(
+            1,
+            node("Add", "bias", &["projected", "b"], &["biased"], &[]),
+        )
+        .msg(
+            1,
+            node(
+                "LpNormalization",
+                "normalize",
+                &["biased"],
+                &["descriptor"],
+                &[("axis", -1), ("p", 2)],
+            ),
+        )
+        .str(2, "doorslam_test_image_head")
+        .msg(5, float_tensor("W", &[d_in as u64, d_out as u64], w))
+        .msg(5, float_tensor("b", &[d_out as u64], b))
+        .msg(
+            11,
+            value_info(
+                "image",
+                &[
+                    Dim::Named("batch"),
+                    Dim::Fixed(channels as u64),
+                    Dim::Fixed(height as u64),
+                    Dim::Fixed(width as u64),
+                ],
+            ),
+        )
+        .msg(
+            12,
+            value_info(
+                "descriptor",
+                &[Dim::Named("batch"), Dim::Fixed(d_out as u64)],
+            ),
+        );
+    Some(model(graph))
+}
+
+/// A `ModelProto` around `graph` (IR version, producer, opset).
+fn model(graph: Msg) -> Vec<u8> {
     let opset = Msg::default().str(1, "").uint(2, OPSET);
-    let model = Msg::default()
+    Msg::default()
         .uint(1, IR_VERSION)
         .str(2, "doorslam")
         .str(3, env!("CARGO_PKG_VERSION"))
         .msg(7, graph)
-        .msg(8, opset);
-    Some(model.0)
+        .msg(8, opset)
+        .0
 }
 
 #[cfg(test)]
@@ -160,5 +238,6 @@ mod tests {
     fn mismatched_sizes_are_rejected() {
         assert!(projection_head(3, 2, &[0.0; 5], &[0.0; 2]).is_none());
         assert!(projection_head(3, 2, &[0.0; 6], &[0.0; 3]).is_none());
+        assert!(image_head(1, 2, 3, 2, &[0.0; 11], &[0.0; 2]).is_none());
     }
 }

@@ -1,5 +1,6 @@
 //! The NetVLAD model and the BoW baseline on real images: model errors, the same place seen
-//! rotated and shifted is nearer than another place, and int8 matching agrees with float.
+//! rotated and shifted is nearer than another place (full and int8 wire forms), and int8
+//! matching agrees with float, for both.
 //!
 //! The descriptor tests need the files deploy/setup builds (`DOORSLAM_PLACE_MODEL`,
 //! `DOORSLAM_BOW_VOCABULARY` in its env file); without them they fail naming the file and
@@ -103,6 +104,25 @@ fn same_place_nearer(mut describer: Describer) {
                 place.display()
             );
         }
+        // The same on the wire form, int8, as robots match it.
+        let q: Vec<Quantized> = d
+            .iter()
+            .enumerate()
+            .map(|(i, v)| {
+                let w = describer.to_wire(v).unwrap();
+                Quantized::new(Descriptor::quantize(i as u64, &w).unwrap())
+            })
+            .collect();
+        let same = q[0].distance2(&q[1]).sqrt();
+        for (i, other) in q[2..].iter().enumerate() {
+            let diff = q[0].distance2(other).sqrt();
+            assert!(
+                same < diff,
+                "{:?} int8 wire form {}: moved view at {same:.3}, other place {i} at {diff:.3}",
+                describer.method(),
+                place.display()
+            );
+        }
     }
 }
 
@@ -180,8 +200,10 @@ fn euroc_loop_closures_match_each_other_not_the_distractors() {
     euroc_loop_matches(bow());
 }
 
-#[test]
-fn int8_matching_agrees_with_float() {
+/// On real KITTI frames, distances on the int8 wire form agree with those of its float
+/// form to < 0.01, and nearest neighbours agree for >= 95 % (BENCHMARKS.md: the recall
+/// lost on the held-out towns is under one point).
+fn int8_agrees_with_float(mut describer: Describer) {
     let kitti = data().join("kitti06_0000-0050/image_0");
     let raw = data().join("kitti_raw_2011_09_26_drive_0001/image_0");
     let mut images: Vec<GrayImage> = (0..51)
@@ -193,8 +215,12 @@ fn int8_matching_agrees_with_float() {
             .step_by(4)
             .map(|i| image(&raw.join(format!("{i:06}.png")))),
     );
-    let mut describer = netvlad();
-    let d = describer.describe(&images).unwrap();
+    let d: Vec<Vec<f32>> = describer
+        .describe(&images)
+        .unwrap()
+        .iter()
+        .map(|v| describer.to_wire(v).unwrap())
+        .collect();
     let q: Vec<Quantized> = d
         .iter()
         .enumerate()
@@ -211,7 +237,8 @@ fn int8_matching_agrees_with_float() {
     // moves by well under the match thresholds' spacing.
     assert!(
         worst < 0.01,
-        "largest int8 vs float distance difference {worst}"
+        "{:?}: largest int8 vs float distance difference {worst}",
+        describer.method()
     );
     // Nearest neighbours (excluding the 2 frames on each side) agree for nearly all.
     let far = |a: usize, b: usize| a.abs_diff(b) > 2;
@@ -224,9 +251,20 @@ fn int8_matching_agrees_with_float() {
         .count();
     assert!(
         agree * 100 >= 95 * d.len(),
-        "{agree} of {} nearest neighbours agree",
+        "{:?}: {agree} of {} nearest neighbours agree",
+        describer.method(),
         d.len()
     );
+}
+
+#[test]
+fn int8_matching_agrees_with_float() {
+    int8_agrees_with_float(netvlad());
+}
+
+#[test]
+fn bow_int8_matching_agrees_with_its_projected_float_form() {
+    int8_agrees_with_float(bow());
 }
 
 #[test]
