@@ -62,7 +62,9 @@ pub struct UpSection {
 }
 
 fn default_services() -> Vec<String> {
-    ["backend", "frontend", "camera"].map(String::from).to_vec()
+    ["backend", "frontend", "place-recognition", "team", "camera"]
+        .map(String::from)
+        .to_vec()
 }
 
 impl Default for UpSection {

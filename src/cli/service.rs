@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::{bail, Result};
+use anyhow::Result;
 use clap::{Args, ValueEnum};
 
 use doorslam_camera::CameraSource;
@@ -90,7 +90,12 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                 doorslam_team::runner::PiecesKind::Robot => {
                     let pieces = doorslam_rendezvous::RobotPieces {
                         calibration: config.calibration()?,
-                        matching: config.rendezvous.matching(),
+                        matching: config.rendezvous.matching(
+                            config
+                                .place
+                                .match_threshold
+                                .unwrap_or_else(|| config.place.method.default_threshold()),
+                        ),
                     };
                     doorslam_rendezvous::run(&config.team, &config.robot.id, index, &pieces, &stop)?
                 }

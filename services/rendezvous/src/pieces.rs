@@ -19,7 +19,7 @@ use doorslam_ipc::wire::{
     VerificationFeatures, DESCRIPTOR_DIM,
 };
 use doorslam_ipc::{EnvelopeEvent, Feature, Keyframe, PlaceDescriptor};
-use doorslam_place_recognition::matching::Quantized;
+use doorslam_place_recognition::MatchIndex;
 use doorslam_team::protocol::{BackendExchange, BackendRefusal, DescriptorBatch, DescriptorSource};
 use doorslam_team::{Pieces, Verifier};
 use serde::Serialize;
@@ -27,11 +27,10 @@ use serde::Serialize;
 /// How putative pairs are chosen and verified.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MatchSettings {
-    /// A received descriptor matches an own keyframe whose descriptor is nearer than this
-    /// (Euclidean distance of the L2-normalized descriptors, on the int8 wire form).
+    /// A received descriptor matches its nearest own keyframe when nearer than this
+    /// (Euclidean distance on the int8 wire form; place recognition's fitted threshold of
+    /// the descriptor in use, `[place] match_threshold`).
     pub threshold: f32,
-    /// At most this many own keyframes per received descriptor (the nearest).
-    pub max_candidates: usize,
     /// Features in a verification packet (the strongest first, as the front-end orders
     /// them); bounds the packet's size (the front-end's packet holds at most
     /// [`MAX_PACKET_FEATURES`]: ≤ 20 kB).
@@ -42,8 +41,7 @@ pub struct MatchSettings {
 impl Default for MatchSettings {
     fn default() -> Self {
         Self {
-            threshold: 0.8,
-            max_candidates: 1,
+            threshold: doorslam_place_recognition::Method::BagOfWords.default_threshold(),
             max_packet_features: MAX_PACKET_FEATURES,
             verify: VerifyConfig::default(),
         }
@@ -89,8 +87,10 @@ pub struct State {
     settings: MatchSettings,
     /// Own keyframes' features (strongest first, as the front-end sends them), by index.
     features: BTreeMap<u64, Vec<doorslam_frontend::Feature>>,
-    /// Own descriptors, by keyframe index, in the wire's int8 form.
-    descriptors: BTreeMap<u64, Quantized>,
+    /// Own descriptors, by keyframe index, in the wire's int8 form (sent as they are), and
+    /// the index matching received ones against them.
+    descriptors: BTreeMap<u64, Descriptor>,
+    index: MatchIndex,
     /// Team-in envelopes and closures waiting to be published to the back-end.
     to_backend: VecDeque<ToBackend>,
     closures: VecDeque<doorslam_ipc::LoopClosure>,
@@ -107,12 +107,14 @@ pub struct Shared(Arc<Mutex<State>>);
 
 impl Shared {
     pub fn new(robot: u8, calib: StereoCalibration, settings: MatchSettings) -> Self {
+        let index = MatchIndex::new(robot, settings.threshold, 0);
         Self(Arc::new(Mutex::new(State {
             robot,
             calib,
             settings,
             features: BTreeMap::new(),
             descriptors: BTreeMap::new(),
+            index,
             to_backend: VecDeque::new(),
             closures: VecDeque::new(),
             for_peers: BTreeMap::new(),
@@ -194,14 +196,16 @@ impl Shared {
             Ok(k) => k,
             Err(e) => return refuse(&mut s, e.to_string()),
         };
-        match Descriptor::quantize(k, &d.values[..DESCRIPTOR_DIM]) {
-            Ok(q) => {
-                s.descriptors.insert(d.keyframe, Quantized::new(q));
-                s.stats.descriptors += 1;
-                Ok(())
-            }
-            Err(e) => refuse(&mut s, format!("descriptor of keyframe {}: {e}", d.keyframe)),
+        let q = match Descriptor::quantize(k, &d.values[..DESCRIPTOR_DIM]) {
+            Ok(q) => q,
+            Err(e) => return refuse(&mut s, format!("descriptor of keyframe {}: {e}", d.keyframe)),
+        };
+        if let Err(e) = s.index.insert(q.clone()) {
+            return refuse(&mut s, e.to_string());
         }
+        s.descriptors.insert(d.keyframe, q);
+        s.stats.descriptors += 1;
+        Ok(())
     }
 
     /// A message the back-end wants sent to robot `peer_robot` (its body goes out through
@@ -292,7 +296,7 @@ impl DescriptorSource for Places {
             if descriptors.len() == limit {
                 break;
             }
-            descriptors.push(q.descriptor.clone());
+            descriptors.push(q.clone());
             covered = i + 1;
         }
         if descriptors.len() < limit {
@@ -306,28 +310,7 @@ impl DescriptorSource for Places {
 
     fn match_descriptors(&mut self, _peer: &RobotId, received: &[Descriptor]) -> Vec<Match> {
         let mut s = self.0.lock();
-        let (threshold, k) = (s.settings.threshold, s.settings.max_candidates.max(1));
-        let robot = s.robot;
-        let mut out = Vec::new();
-        for d in received {
-            let q = Quantized::new(d.clone());
-            let mut near: Vec<(u64, f32)> = s
-                .descriptors
-                .iter()
-                .map(|(&i, own)| (i, own.distance2(&q).sqrt()))
-                .filter(|(_, dist)| *dist < threshold)
-                .collect();
-            near.sort_by(|a, b| a.1.total_cmp(&b.1));
-            for (i, distance) in near.into_iter().take(k) {
-                if let Ok(candidate) = key::symbol(robot, i) {
-                    out.push(Match {
-                        query: d.key,
-                        candidate,
-                        distance,
-                    });
-                }
-            }
-        }
+        let out = s.index.match_batch(received);
         s.stats.putative_pairs += out.len() as u64;
         out
     }

@@ -180,27 +180,18 @@ pub fn run(
     run_robot(section, robot, robot_index, &mut side, stop)
 }
 
-/// `[rendezvous]` of robot.toml: how putative pairs are chosen and verified.
+/// `[rendezvous]` of robot.toml: how putative pairs are verified. (The camera model is
+/// the front-end's, `[frontend]`; the descriptor threshold place recognition's, `[place]`.)
 #[derive(Debug, Clone, PartialEq, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RendezvousSection {
-    /// See [`MatchSettings`]. (The calibration is the front-end's: `[frontend]`.)
-    #[serde(default = "default_threshold")]
-    pub match_threshold: f32,
-    #[serde(default = "default_candidates")]
-    pub max_candidates: usize,
+    /// Features in a verification packet (see [`MatchSettings`]).
     #[serde(default = "default_packet")]
     pub max_packet_features: usize,
     #[serde(default)]
     pub verify: doorslam_frontend::VerifyConfig,
 }
 
-fn default_threshold() -> f32 {
-    MatchSettings::default().threshold
-}
-fn default_candidates() -> usize {
-    MatchSettings::default().max_candidates
-}
 fn default_packet() -> usize {
     MatchSettings::default().max_packet_features
 }
@@ -208,8 +199,6 @@ fn default_packet() -> usize {
 impl Default for RendezvousSection {
     fn default() -> Self {
         Self {
-            match_threshold: default_threshold(),
-            max_candidates: default_candidates(),
             max_packet_features: default_packet(),
             verify: doorslam_frontend::VerifyConfig::default(),
         }
@@ -219,33 +208,22 @@ impl Default for RendezvousSection {
 impl RendezvousSection {
     /// Checks the values; the error names the key.
     pub fn validate(&self) -> Result<(), String> {
-        if !(self.match_threshold.is_finite() && self.match_threshold > 0.0) {
-            return Err(format!(
-                "rendezvous.match_threshold = {}: a positive distance",
-                self.match_threshold
-            ));
-        }
-        if self.max_candidates == 0 {
-            return Err("rendezvous.max_candidates must be >= 1".into());
-        }
+        let max = doorslam_frontend::packet::MAX_PACKET_FEATURES;
         if self.max_packet_features < self.verify.min_inliers.max(4)
-            || self.max_packet_features > doorslam_ipc::wire::MAX_FEATURES
+            || self.max_packet_features > max
         {
             return Err(format!(
-                "rendezvous.max_packet_features = {}: from verify.min_inliers ({}) to {}",
-                self.max_packet_features,
-                self.verify.min_inliers,
-                doorslam_ipc::wire::MAX_FEATURES
+                "rendezvous.max_packet_features = {}: from verify.min_inliers ({}) to {max} (≤ 20 kB per packet)",
+                self.max_packet_features, self.verify.min_inliers
             ));
         }
         Ok(())
     }
 
-    /// The matching settings.
-    pub fn matching(&self) -> MatchSettings {
+    /// The matching settings, with place recognition's distance threshold.
+    pub fn matching(&self, threshold: f32) -> MatchSettings {
         MatchSettings {
-            threshold: self.match_threshold,
-            max_candidates: self.max_candidates,
+            threshold,
             max_packet_features: self.max_packet_features,
             verify: self.verify.clone(),
         }
