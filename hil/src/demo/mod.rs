@@ -118,6 +118,12 @@ pub struct RunLog {
     pub starts: Vec<u32>,
 }
 
+/// At base, the team is settled once converged and quiet this long...
+const QUIET: Duration = Duration::from_secs(4);
+/// ... and not before the robots had this long to find each other again (scouting,
+/// sessions re-opened after the flight's cuts).
+const MEETING: Duration = Duration::from_secs(6);
+
 fn letter(r: usize) -> char {
     crate::flights::robot_name(r)
 }
@@ -177,12 +183,8 @@ pub fn run(
         let text = config::robot_toml(config, &world, r, &addresses, start_unix_ms, net.is_some());
         robots.push(robot::Robot::create(out, r, &text)?);
     }
-    snap.phase = Phase::Starting;
-    for robot in &mut robots {
-        robot.start(&config.exe, net.as_ref())?;
-    }
-
-    // Range at the start: pairs not in range yet are cut.
+    // Range at the start: every pair is cut before anyone listens (the events put them in
+    // range on time).
     let mut in_range = vec![vec![net.is_none(); n]; n];
     if let Some(net) = &net {
         for a in 0..n {
@@ -190,6 +192,10 @@ pub fn run(
                 net.cut(a, b)?;
             }
         }
+    }
+    snap.phase = Phase::Starting;
+    for robot in &mut robots {
+        robot.start(&config.exe, net.as_ref())?;
     }
     let flight_total_s = world.duration_s();
     snap.flight_total_s = flight_total_s;
@@ -302,15 +308,16 @@ pub fn run(
         }
         progress(&snap);
         let all_converged = snap.robots.iter().all(|r| r.converged);
-        // Converged and nothing moving (closures, rounds) for two seconds.
+        // Converged, and nothing moving for a while: no closure, no back-end round, not a
+        // byte on the radio (the meeting at base has exchanged what it had to).
         let same = |a: &[RobotSnapshot], b: &[RobotSnapshot]| {
-            a.iter()
-                .zip(b)
-                .all(|(x, y)| x.closures == y.closures && x.rounds == y.rounds)
+            a.iter().zip(b).all(|(x, y)| {
+                x.closures == y.closures && x.rounds == y.rounds && x.bytes_sent == y.bytes_sent
+            })
         };
         match &stable_since {
             Some((since, s)) if all_converged && same(s, &snap.robots) => {
-                if since.elapsed() >= Duration::from_secs(2) {
+                if since.elapsed() >= QUIET && t_settle.elapsed() >= MEETING {
                     log.converged_at_base = true;
                     break;
                 }

@@ -119,6 +119,8 @@ where
         .configure_mesh()
         .x_desc(&p.x)
         .y_desc(&p.y)
+        .light_line_style(RGBColor(245, 245, 245))
+        .bold_line_style(RGBColor(215, 215, 215))
         .label_style(("sans-serif", 14))
         .draw()
         .map_err(e)?;
