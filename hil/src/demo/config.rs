@@ -4,6 +4,8 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
+use doorslam_backend::eval::Trajectory;
+
 use crate::flights::{
     camera_for_resolution, robot_name, simulate_team, write_team, FlightConfig, RangeEvent,
 };
@@ -156,8 +158,8 @@ pub fn prepare_out(out: &Path) -> Result<(), DemoError> {
 pub struct World {
     /// Per robot: the folder its camera replays, and `[k, n]` when it plays part of it.
     pub sources: Vec<(PathBuf, Option<[usize; 2]>)>,
-    /// Per robot: ground truth (KITTI poses, times) of the whole folder it replays.
-    pub truth: Vec<(PathBuf, PathBuf)>,
+    /// Per robot: ground truth of the whole folder it replays (stamps as the replay's).
+    pub truth: Vec<Trajectory>,
     /// Radio range changes, in time order.
     pub events: Vec<RangeEvent>,
     /// The simulator's closure candidates (`closures.csv`), when rendered.
@@ -228,8 +230,8 @@ impl World {
         Ok(World {
             sources: (0..n).map(|r| (per_robot(r), None)).collect(),
             truth: (0..n)
-                .map(|r| (per_robot(r).join("poses.txt"), per_robot(r).join("times.txt")))
-                .collect(),
+                .map(|r| ground_truth(&per_robot(r)))
+                .collect::<Result<_, _>>()?,
             events: team.events.clone(),
             closures_csv: Some(dir.join("closures.csv")),
             frames: config.frames,
@@ -239,33 +241,16 @@ impl World {
     }
 
     fn split(dir: &Path, robots: usize) -> Result<World, DemoError> {
-        let fail = |reason: String| DemoError::Io {
-            path: dir.to_path_buf(),
-            reason,
-        };
-        let poses = dir.join("poses.txt");
-        let times = dir.join("times.txt");
-        if !poses.is_file() {
-            return Err(fail(
-                "no poses.txt: the demo needs ground truth to report errors".into(),
-            ));
-        }
-        let text = std::fs::read_to_string(&times).map_err(io_err(&times))?;
-        let stamps: Vec<f64> = text
-            .split_whitespace()
-            .map(|t| t.parse::<f64>())
-            .collect::<Result<_, _>>()
-            .map_err(|e| DemoError::Io {
-                path: times.clone(),
-                reason: format!("not a list of seconds: {e}"),
-            })?;
-        let frames = stamps.len();
+        let truth = ground_truth(dir)?;
+        let frames = truth.len();
         if frames < 10 * robots {
-            return Err(fail(format!(
-                "{frames} frames: too few for {robots} robots (at least 10 each)"
-            )));
+            return Err(DemoError::Io {
+                path: dir.to_path_buf(),
+                reason: format!("{frames} frames: too few for {robots} robots (at least 10 each)"),
+            });
         }
-        let span = stamps.last().copied().unwrap_or(0.0) - stamps[0];
+        let stamps = truth.timestamps();
+        let span = stamps[frames - 1] - stamps[0];
         let rate_hz = if span > 0.0 {
             (frames - 1) as f64 / span
         } else {
@@ -277,7 +262,7 @@ impl World {
             .collect();
         Ok(World {
             sources: (0..robots).map(|r| (dir.to_path_buf(), Some([r, robots]))).collect(),
-            truth: vec![(poses, times); robots],
+            truth: vec![truth; robots],
             events: Vec::new(),
             closures_csv: None,
             frames,
@@ -285,6 +270,27 @@ impl World {
             robot_frames,
         })
     }
+}
+
+/// The ground truth of a dataset folder (`poses.txt`), stamped as the replay stamps its
+/// frames (`times.txt`, or 10 Hz without it).
+fn ground_truth(dir: &Path) -> Result<Trajectory, DemoError> {
+    let fail = |reason: String| DemoError::Io {
+        path: dir.to_path_buf(),
+        reason,
+    };
+    let poses = dir.join("poses.txt");
+    if !poses.is_file() {
+        return Err(fail(
+            "no poses.txt: the demo needs ground truth to report errors".into(),
+        ));
+    }
+    let dataset = doorslam_dataset::Dataset::open(dir)
+        .and_then(|d| d.with_truth(&poses))
+        .map_err(|e| fail(e.to_string()))?;
+    let truth = dataset.truth.clone().unwrap_or_default();
+    let stamps = dataset.frames.iter().map(|f| f.stamp_ns as f64 * 1e-9).collect();
+    Trajectory::new(stamps, truth).map_err(|e| fail(e.to_string()))
 }
 
 /// The `robot.toml` of robot `r`.

@@ -20,8 +20,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use doorslam_backend::eval::{
-    absolute_trajectory_error, associate_by_timestamp, read_kitti_with_times, read_tum,
-    umeyama, Alignment, Trajectory,
+    absolute_trajectory_error, associate_by_timestamp, read_tum, umeyama, Alignment, Trajectory,
 };
 use doorslam_backend::g2o::{merge_g2o_files, ReadOptions};
 use doorslam_backend::init::Chordal;
@@ -289,11 +288,7 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
     let status = |r: usize| -> Option<serde_json::Value> {
         serde_json::from_str(&std::fs::read_to_string(dir(r).join("backend.json")).ok()?).ok()
     };
-    let truth: Vec<Option<Trajectory>> = world
-        .truth
-        .iter()
-        .map(|(poses, times)| read_kitti_with_times(poses, times).ok())
-        .collect();
+    let truth: Vec<Option<Trajectory>> = world.truth.iter().cloned().map(Some).collect();
 
     // Errors.
     let mut per_robot = BTreeMap::new();
@@ -339,13 +334,17 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
             },
         );
     }
-    // The team's frame: the anchor most robots share (normally robot a's).
+    // The team's frame: the anchor most robots share, the lowest robot's on a tie (robot
+    // a's, as the centralized oracle's).
     let team_anchor = {
         let mut count: BTreeMap<&String, usize> = BTreeMap::new();
         for a in anchors.values() {
             *count.entry(a).or_default() += 1;
         }
-        count.into_iter().max_by_key(|(_, c)| *c).map(|(a, _)| a.clone())
+        count
+            .into_iter()
+            .min_by_key(|(a, c)| (std::cmp::Reverse(*c), (*a).clone()))
+            .map(|(a, _)| a.clone())
     };
     team_pairs.retain(|r, _| Some(&anchors[r]) == team_anchor.as_ref());
     let team_errors = joint_errors(&team_pairs);
