@@ -9,8 +9,10 @@ mod pcm;
 mod pgo;
 mod place;
 mod replay;
+mod router;
 mod service;
 pub(crate) mod sim;
+mod team;
 mod up;
 mod vo;
 
@@ -51,6 +53,10 @@ pub enum Command {
     Replay(replay::ReplayArgs),
     /// Measure what each inter-robot message kind costs in bytes.
     Bw(bw::BwArgs),
+    /// The team link's security: certificates for TLS with mutual authentication.
+    Team(team::TeamArgs),
+    /// Run a Zenoh router for large fleets (robots connect to it instead of to each other).
+    Router(router::RouterArgs),
     /// Run the demo (today: a check of the whole dependency stack on real data).
     Demo(demo::DemoArgs),
     /// Measure the on-robot transports (iceoryx2, Zenoh shared memory, Unix socket).
@@ -82,6 +88,8 @@ pub fn main() -> ExitCode {
         Command::Vo(args) => vo::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Bw(args) => bw::run(args),
+        Command::Team(args) => team::run(args),
+        Command::Router(args) => router::run(args),
         Command::Demo(args) => demo::run(args),
         Command::Bench(args) => bench::run(args),
     };

@@ -17,6 +17,8 @@
 use doorslam_ipc::wire::RobotId;
 use zenoh::{Session, Wait};
 
+use crate::security::{check_endpoints, Security, SecurityError};
+
 /// Failures of the inter-robot link.
 #[derive(Debug, thiserror::Error)]
 pub enum TeamError {
@@ -36,12 +38,15 @@ pub enum TeamError {
     Kind(String),
     #[error("zenoh {what}: {reason}")]
     Zenoh { what: &'static str, reason: String },
+    #[error(transparent)]
+    Security(#[from] SecurityError),
 }
 
 /// How one robot joins the team network.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct LinkConfig {
-    /// Endpoints to listen on, e.g. `tcp/0.0.0.0:7447` (radio) or `tcp/127.0.0.1:PORT` (tests).
+    /// Endpoints to listen on, e.g. `tcp/0.0.0.0:7447` (radio) or `tcp/127.0.0.1:PORT` (tests);
+    /// `tls/...` with [`Security`].
     pub listen: Vec<String>,
     /// Endpoints of peers to connect to.
     pub connect: Vec<String>,
@@ -66,6 +71,20 @@ pub fn open_peer_with_lease(
     link: &LinkConfig,
     lease_ms: Option<u64>,
 ) -> Result<Session, TeamError> {
+    open_team_session("peer", link, lease_ms, None)
+}
+
+/// Opens a Zenoh session of the team link in `mode` (`peer` for robots, `router` for
+/// [`crate::router`]); with `security`, TLS with mutual authentication and the team's
+/// access control ([`crate::security`]), and only `tls/` endpoints.
+pub fn open_team_session(
+    mode: &str,
+    link: &LinkConfig,
+    lease_ms: Option<u64>,
+    security: Option<&Security>,
+) -> Result<Session, TeamError> {
+    check_endpoints(&link.listen, "listen", security.is_some())?;
+    check_endpoints(&link.connect, "connect", security.is_some())?;
     let mut config = zenoh::Config::default();
     let mut set = |key: &'static str, value: String| {
         config
@@ -75,7 +94,7 @@ pub fn open_peer_with_lease(
                 reason: e.to_string(),
             })
     };
-    set("mode", "\"peer\"".into())?;
+    set("mode", format!("{mode:?}"))?;
     set("listen/endpoints", json_list(&link.listen))?;
     set("connect/endpoints", json_list(&link.connect))?;
     set(
@@ -88,6 +107,9 @@ pub fn open_peer_with_lease(
     set("transport/shared_memory/enabled", "false".into())?;
     if let Some(lease) = lease_ms {
         set("transport/link/tx/lease", lease.to_string())?;
+    }
+    if let Some(security) = security {
+        security.apply(&mut config)?;
     }
     zenoh::open(config).wait().map_err(|e| TeamError::Open {
         listen: link.listen.clone(),

@@ -16,6 +16,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::ledger::{Ledger, LedgerError, LedgerHandle};
 use crate::link::{team_name, LinkConfig, TeamError};
+use crate::security::{Holder, Security, TlsSection};
 use crate::node::{Node, Pieces};
 use crate::protocol::{Identity, PeerStats, ProtocolConfig};
 use crate::standin::{BackendLog, EchoBackend, SimPlaces, SimWorld, TruthVerifier};
@@ -51,6 +52,10 @@ pub struct TeamSection {
     pub raw_image_height: u64,
     #[serde(default)]
     pub standin: StandinSection,
+    /// `[team.tls]`: TLS with mutual authentication and access control (see
+    /// [`crate::security`]); absent = plain TCP, open to anyone on the network.
+    #[serde(default)]
+    pub tls: Option<TlsSection>,
 }
 
 /// `[team.standin]`: the simulated keyframes and descriptors (the same seed on every robot
@@ -146,6 +151,7 @@ impl Default for TeamSection {
             raw_image_width: default_width(),
             raw_image_height: default_height(),
             standin: StandinSection::default(),
+            tls: None,
         }
     }
 }
@@ -194,6 +200,9 @@ impl TeamSection {
                 "standin.features_per_keyframe",
                 "must be 1 to MAX_FEATURES",
             ));
+        }
+        if let Some(tls) = &self.tls {
+            tls.roster().map_err(|e| bad("tls", &e))?;
         }
         Ok(())
     }
@@ -250,7 +259,12 @@ pub fn next_epoch(dir: &Path) -> Result<u64, RunError> {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => 0,
         Err(source) => return Err(RunError::Io { path, source }),
     };
-    let epoch = previous + 1;
+    // An epoch at the top of the range is a corrupted file, not a restart count: refused
+    // (never wrapped to 0, which every peer would take for a stale replay).
+    let epoch = previous.checked_add(1).ok_or_else(|| RunError::Epoch {
+        path: path.clone(),
+        reason: format!("epoch {previous} cannot be incremented: remove the file to start at 1"),
+    })?;
     write_atomic(&path, &format!("{epoch}\n"))?;
     Ok(epoch)
 }
@@ -282,6 +296,15 @@ pub fn run(
         path: dir.clone(),
         source,
     })?;
+    // TLS files are checked before anything is written: a bad certificate fails the start
+    // naming the file, and the epoch file below is written before the link opens.
+    let security = match &section.tls {
+        Some(tls) => Some(Security::check(tls, &section.name, &Holder::Robot(id.clone())).map_err(TeamError::from)?),
+        None => {
+            tracing::warn!(team = %section.name, "team link is open: no [team.tls], anyone on the network can join the team and inject messages (see doorslam team certs)");
+            None
+        }
+    };
     let epoch = next_epoch(&dir)?;
     let s = &section.standin;
     let world = SimWorld {
@@ -294,12 +317,16 @@ pub fn run(
     let created = place.created();
     let backend = EchoBackend::new(robot_index);
     let backend_log = backend.log.clone();
-    let ledger = LedgerHandle::new(Ledger::new(
+    let mut ledger = Ledger::new(
         robot,
         &section.name,
         epoch,
         section.raw_image_width * section.raw_image_height,
-    ));
+    );
+    if security.is_some() {
+        ledger = ledger.over_tls();
+    }
+    let ledger = LedgerHandle::new(ledger);
     let me = Identity {
         id: id.clone(),
         robot: robot_index,
@@ -328,6 +355,7 @@ pub fn run(
             multicast_scouting: section.multicast_scouting,
         },
         lease_ms: Some(section.lease_ms),
+        security,
     })?;
     doorslam_ipc::lifecycle::sd_notify(&format!(
         "READY=1\nSTATUS=team {} epoch {epoch}",

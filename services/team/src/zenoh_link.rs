@@ -16,10 +16,11 @@ use zenoh::sample::{Sample, SampleKind};
 use zenoh::{Session, Wait};
 
 use crate::link::{
-    alive_expr, alive_pattern, inbox_expr, key_expr, open_peer_with_lease, parse_alive,
+    alive_expr, alive_pattern, inbox_expr, key_expr, open_team_session, parse_alive,
     parse_message_key, LinkConfig, TeamError,
 };
 use crate::node::{Link, LinkError, LinkEvent};
+use crate::security::Security;
 
 /// How a robot joins its team over Zenoh.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -29,6 +30,9 @@ pub struct ZenohLinkConfig {
     pub link: LinkConfig,
     /// Zenoh link lease: a peer out of range is declared gone after this long.
     pub lease_ms: Option<u64>,
+    /// TLS with mutual authentication and access control; None: plain TCP, open to anyone
+    /// on the network.
+    pub security: Option<Security>,
 }
 
 /// One robot's Zenoh end of the team link.
@@ -54,7 +58,12 @@ fn zerr(what: &'static str) -> impl Fn(zenoh::Error) -> TeamError {
 impl ZenohLink {
     /// Opens the session, declares the token and both subscribers.
     pub fn open(config: &ZenohLinkConfig) -> Result<Self, TeamError> {
-        let session = open_peer_with_lease(&config.link, config.lease_ms)?;
+        let session = open_team_session(
+            "peer",
+            &config.link,
+            config.lease_ms,
+            config.security.as_ref(),
+        )?;
         let me = config.me.as_str();
         let inbox = session
             .declare_subscriber(inbox_expr(&config.team, me)?)
@@ -105,6 +114,14 @@ impl ZenohLink {
     fn drain(&self, out: &mut Vec<LinkEvent>) {
         while let Ok(Some(s)) = self.alive.try_recv() {
             let Some(peer) = parse_alive(&self.team, s.key_expr().as_str()) else {
+                // A token under the team's prefix that names no valid robot: counted once
+                // (when declared, not again when it goes).
+                if s.kind() == SampleKind::Put {
+                    out.push(LinkEvent::Malformed {
+                        key: s.key_expr().to_string(),
+                        bytes: 0,
+                    });
+                }
                 continue;
             };
             if peer == self.me {

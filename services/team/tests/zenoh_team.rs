@@ -56,6 +56,7 @@ fn robot(
             multicast_scouting: false,
         },
         lease_ms: Some(2000),
+        security: None,
     })
     .unwrap();
     (node, link)
@@ -140,6 +141,7 @@ fn a_thousand_descriptor_messages_per_second_arrive_without_loss() {
                 multicast_scouting: false,
             },
             lease_ms: None,
+            security: None,
         })
         .unwrap()
     };
