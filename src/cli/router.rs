@@ -74,7 +74,10 @@ fn section(args: RouterArgs) -> Result<RouterSection> {
             }
         };
         let robots = if args.robots.is_empty() {
-            from_file.as_ref().map(|t| t.robots.clone()).unwrap_or_default()
+            from_file
+                .as_ref()
+                .map(|t| t.robots.clone())
+                .unwrap_or_default()
         } else {
             args.robots
         };

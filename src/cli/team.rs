@@ -56,7 +56,10 @@ fn certs(args: CertsArgs) -> Result<()> {
         .with_context(|| format!("doorslam team certs --out {}", args.out.display()))?;
     let out = args.out.display();
     if issued.ca_created {
-        println!("team CA: {} (its key {out}/ca.key stays with you, not on the robots)", issued.ca.display());
+        println!(
+            "team CA: {} (its key {out}/ca.key stays with you, not on the robots)",
+            issued.ca.display()
+        );
     } else {
         println!("team CA reused: {}", issued.ca.display());
     }

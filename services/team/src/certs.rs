@@ -23,8 +23,8 @@ use std::time::{Duration, SystemTime};
 
 use doorslam_ipc::wire::RobotId;
 use rcgen::{
-    BasicConstraints, CertificateParams, DistinguishedName, DnType, ExtendedKeyUsagePurpose,
-    IsCa, Issuer, KeyPair, KeyUsagePurpose, SanType,
+    BasicConstraints, CertificateParams, DistinguishedName, DnType, ExtendedKeyUsagePurpose, IsCa,
+    Issuer, KeyPair, KeyUsagePurpose, SanType,
 };
 
 /// The common name of every router's certificate: not a robot id (those have no `.`), so a
@@ -431,7 +431,9 @@ mod tests {
         let err = generate(dir.path(), &request(&[])).unwrap_err();
         assert!(err.to_string().contains("--robots"), "{err}");
         std::fs::write(dir.path().join("ca.pem"), "x").unwrap();
-        let err = generate(dir.path(), &request(&["a"])).unwrap_err().to_string();
+        let err = generate(dir.path(), &request(&["a"]))
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("ca.key"), "{err}");
     }
 }

@@ -55,6 +55,30 @@ pub struct LinkConfig {
     pub multicast_scouting: bool,
 }
 
+/// How a robot's session joins the team network (`[team] mode`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LinkMode {
+    /// A Zenoh peer: finds the other robots (multicast scouting on the radio LAN, or
+    /// `connect`) and talks to each directly.
+    #[default]
+    Peer,
+    /// A Zenoh client of a router (`doorslam router`): every message goes through the
+    /// router. Zenoh 1.10 routers relay between their clients, not between peers (peers of
+    /// one router are assumed to reach each other directly).
+    Client,
+}
+
+impl LinkMode {
+    /// Zenoh's name of the mode.
+    pub fn zenoh(self) -> &'static str {
+        match self {
+            LinkMode::Peer => "peer",
+            LinkMode::Client => "client",
+        }
+    }
+}
+
 fn json_list(items: &[String]) -> String {
     let quoted: Vec<String> = items.iter().map(|s| format!("{s:?}")).collect();
     format!("[{}]", quoted.join(","))
@@ -74,8 +98,8 @@ pub fn open_peer_with_lease(
     open_team_session("peer", link, lease_ms, None)
 }
 
-/// Opens a Zenoh session of the team link in `mode` (`peer` for robots, `router` for
-/// [`crate::router`]); with `security`, TLS with mutual authentication and the team's
+/// Opens a Zenoh session of the team link in `mode` (`peer` or `client` for robots,
+/// [`LinkMode`]; `router` for [`crate::router`]); with `security`, TLS with mutual authentication and the team's
 /// access control ([`crate::security`]), and only `tls/` endpoints.
 pub fn open_team_session(
     mode: &str,

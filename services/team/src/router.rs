@@ -1,8 +1,9 @@
 //! `doorslam router`: a Zenoh router embedded in the binary, for fleets where peer-to-peer
 //! discovery does not reach (no multicast on the network, robots behind different links,
 //! many robots: each robot keeps one link to the router instead of one per robot). Robots
-//! connect to it (`[team] connect = ["tls/<router>:7447"]`); it forwards the team's
-//! messages and liveliness tokens between them. With TLS it holds a certificate of the
+//! connect to it as Zenoh clients (`[team] mode = "client"`, `listen = []`,
+//! `connect = ["tls/<router>:7447"]`: Zenoh 1.10 routers relay between clients, not
+//! between peers); it forwards the team's messages and liveliness tokens between them. With TLS it holds a certificate of the
 //! team CA (common name [`crate::certs::ROUTER_COMMON_NAME`]) and enforces the same access
 //! control as every robot ([`crate::security`]), so a robot reaching others through it can
 //! still publish only as itself.
@@ -75,8 +76,7 @@ impl Router {
         if section.listen.is_empty() && section.connect.is_empty() {
             return Err(TeamError::Config {
                 key: "listen",
-                reason: "a router needs at least one endpoint to listen on (or connect to)"
-                    .into(),
+                reason: "a router needs at least one endpoint to listen on (or connect to)".into(),
             });
         }
         let security = match &section.tls {

@@ -15,10 +15,10 @@ use doorslam_ipc::wire::RobotId;
 use serde::{Deserialize, Serialize};
 
 use crate::ledger::{Ledger, LedgerError, LedgerHandle};
-use crate::link::{team_name, LinkConfig, TeamError};
-use crate::security::{Holder, Security, TlsSection};
+use crate::link::{team_name, LinkConfig, LinkMode, TeamError};
 use crate::node::{Node, Pieces};
 use crate::protocol::{Identity, PeerStats, ProtocolConfig};
+use crate::security::{Holder, Security, TlsSection};
 use crate::standin::{BackendLog, EchoBackend, SimPlaces, SimWorld, TruthVerifier};
 use crate::zenoh_link::{ZenohLink, ZenohLinkConfig};
 
@@ -29,6 +29,10 @@ pub struct TeamSection {
     /// Team prefix of every key expression (`doorslam/<name>/...`).
     #[serde(default = "default_name")]
     pub name: String,
+    /// `peer` (default): robots reach each other directly; `client`: through a
+    /// `doorslam router` in `connect` (then `listen = []`).
+    #[serde(default)]
+    pub mode: LinkMode,
     #[serde(default = "default_listen")]
     pub listen: Vec<String>,
     #[serde(default)]
@@ -141,6 +145,7 @@ impl Default for TeamSection {
     fn default() -> Self {
         Self {
             name: default_name(),
+            mode: LinkMode::Peer,
             listen: default_listen(),
             connect: Vec::new(),
             multicast_scouting: true,
@@ -203,6 +208,17 @@ impl TeamSection {
         }
         if let Some(tls) = &self.tls {
             tls.roster().map_err(|e| bad("tls", &e))?;
+        }
+        if self.mode == LinkMode::Client {
+            if !self.listen.is_empty() {
+                return Err(bad(
+                    "listen",
+                    "a client (mode = \"client\") does not listen: set listen = []",
+                ));
+            }
+            if self.connect.is_empty() && !self.multicast_scouting {
+                return Err(bad("connect", "a client (mode = \"client\") needs the router's endpoint in connect (or multicast scouting)"));
+            }
         }
         Ok(())
     }
@@ -299,7 +315,10 @@ pub fn run(
     // TLS files are checked before anything is written: a bad certificate fails the start
     // naming the file, and the epoch file below is written before the link opens.
     let security = match &section.tls {
-        Some(tls) => Some(Security::check(tls, &section.name, &Holder::Robot(id.clone())).map_err(TeamError::from)?),
+        Some(tls) => Some(
+            Security::check(tls, &section.name, &Holder::Robot(id.clone()))
+                .map_err(TeamError::from)?,
+        ),
         None => {
             tracing::warn!(team = %section.name, "team link is open: no [team.tls], anyone on the network can join the team and inject messages (see doorslam team certs)");
             None
@@ -346,17 +365,35 @@ pub fn run(
             backend: Box::new(backend),
         },
     );
-    let mut link = ZenohLink::open(&ZenohLinkConfig {
-        team: section.name.clone(),
-        me: id,
-        link: LinkConfig {
-            listen: section.listen.clone(),
-            connect: section.connect.clone(),
-            multicast_scouting: section.multicast_scouting,
+    let link = ZenohLink::open_until(
+        &ZenohLinkConfig {
+            team: section.name.clone(),
+            me: id,
+            link: LinkConfig {
+                listen: section.listen.clone(),
+                connect: section.connect.clone(),
+                multicast_scouting: section.multicast_scouting,
+            },
+            mode: section.mode,
+            lease_ms: Some(section.lease_ms),
+            security,
         },
-        lease_ms: Some(section.lease_ms),
-        security,
-    })?;
+        stop,
+    )?;
+    let Some(mut link) = link else {
+        tracing::info!(robot, "team: stopped before the link opened");
+        return Ok(Status {
+            robot: robot.into(),
+            epoch,
+            keyframes_created: 0,
+            published_bytes: 0,
+            published_messages: 0,
+            peers: BTreeMap::new(),
+            present: Vec::new(),
+            backend: BackendStatus::default(),
+            finished: true,
+        });
+    };
     doorslam_ipc::lifecycle::sd_notify(&format!(
         "READY=1\nSTATUS=team {} epoch {epoch}",
         section.name

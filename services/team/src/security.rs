@@ -92,7 +92,10 @@ pub enum SecurityError {
         source: std::io::Error,
     },
     #[error("{path}: not PEM ({expected} expected)")]
-    NotPem { path: PathBuf, expected: &'static str },
+    NotPem {
+        path: PathBuf,
+        expected: &'static str,
+    },
     #[error("{path}: not an X.509 certificate: {reason}")]
     Certificate { path: PathBuf, reason: String },
     #[error("{path}: not a CA certificate (no CA basic constraint)")]
@@ -368,22 +371,28 @@ pub fn access_control(team: &str, roster: &[RobotId]) -> serde_json::Value {
         json!({"id": "router-tokens", "permission": "allow", "flows": ["ingress", "egress"],
                "messages": ["liveliness_token"], "key_exprs": [alive]}),
     ];
-    let mut subjects = vec![json!({"id": "routers", "cert_common_names": [ROUTER_COMMON_NAME],
-                                   "link_protocols": ["tls"]})];
+    let mut subjects = vec![
+        json!({"id": "routers", "cert_common_names": [ROUTER_COMMON_NAME],
+                                   "link_protocols": ["tls"]}),
+    ];
     let mut policies = vec![json!({"id": "routers",
         "rules": ["team-liveliness", "router", "router-tokens"], "subjects": ["routers"]})];
     for r in roster {
         let r = r.as_str();
-        rules.push(json!({"id": format!("from-{r}"), "permission": "allow", "flows": ["ingress"],
-            "messages": ["put"], "key_exprs": [format!("doorslam/{team}/*/*/{r}")]}));
+        rules.push(
+            json!({"id": format!("from-{r}"), "permission": "allow", "flows": ["ingress"],
+            "messages": ["put"], "key_exprs": [format!("doorslam/{team}/*/*/{r}")]}),
+        );
         rules.push(json!({"id": format!("token-of-{r}"), "permission": "allow",
             "flows": ["ingress"], "messages": ["liveliness_token"],
             "key_exprs": [format!("doorslam/{team}/alive/{r}")]}));
         rules.push(json!({"id": format!("inbox-of-{r}"), "permission": "allow",
             "flows": ["ingress"], "messages": ["declare_subscriber"],
             "key_exprs": [format!("doorslam/{team}/{r}/*/*")]}));
-        rules.push(json!({"id": format!("to-{r}"), "permission": "allow", "flows": ["egress"],
-            "messages": ["put"], "key_exprs": [format!("doorslam/{team}/{r}/*/*")]}));
+        rules.push(
+            json!({"id": format!("to-{r}"), "permission": "allow", "flows": ["egress"],
+            "messages": ["put"], "key_exprs": [format!("doorslam/{team}/{r}/*/*")]}),
+        );
         subjects.push(json!({"id": format!("robot-{r}"), "cert_common_names": [r],
                              "link_protocols": ["tls"]}));
         policies.push(json!({"id": format!("robot-{r}"),
@@ -557,7 +566,10 @@ mod tests {
             },
             &robot("a"),
         );
-        assert!(e.contains("robots/b/key.pem") && e.contains("not the private key of"), "{e}");
+        assert!(
+            e.contains("robots/b/key.pem") && e.contains("not the private key of"),
+            "{e}"
+        );
         // a's certificate for robot b.
         let e = msg(&good, &robot("b"));
         assert!(e.contains("common name \"a\""), "{e}");
@@ -584,7 +596,10 @@ mod tests {
             ),
         ] {
             let (cert, key) = ca.issue("a", validity).unwrap();
-            let (cp, kp) = (f.root.join(format!("{name}.pem")), f.root.join(format!("{name}.key")));
+            let (cp, kp) = (
+                f.root.join(format!("{name}.pem")),
+                f.root.join(format!("{name}.key")),
+            );
             std::fs::write(&cp, cert).unwrap();
             std::fs::write(&kp, key).unwrap();
             let e = msg(
@@ -595,7 +610,10 @@ mod tests {
                 },
                 &robot("a"),
             );
-            assert!(e.contains(&format!("{name}.pem")) && e.contains(what), "{e}");
+            assert!(
+                e.contains(&format!("{name}.pem")) && e.contains(what),
+                "{e}"
+            );
         }
         // A roster entry that is not a robot id.
         let e = msg(

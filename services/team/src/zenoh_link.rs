@@ -17,7 +17,7 @@ use zenoh::{Session, Wait};
 
 use crate::link::{
     alive_expr, alive_pattern, inbox_expr, key_expr, open_team_session, parse_alive,
-    parse_message_key, LinkConfig, TeamError,
+    parse_message_key, LinkConfig, LinkMode, TeamError,
 };
 use crate::node::{Link, LinkError, LinkEvent};
 use crate::security::Security;
@@ -28,6 +28,8 @@ pub struct ZenohLinkConfig {
     pub team: String,
     pub me: RobotId,
     pub link: LinkConfig,
+    /// Peer (robots reach each other directly) or client of a router.
+    pub mode: LinkMode,
     /// Zenoh link lease: a peer out of range is declared gone after this long.
     pub lease_ms: Option<u64>,
     /// TLS with mutual authentication and access control; None: plain TCP, open to anyone
@@ -59,7 +61,7 @@ impl ZenohLink {
     /// Opens the session, declares the token and both subscribers.
     pub fn open(config: &ZenohLinkConfig) -> Result<Self, TeamError> {
         let session = open_team_session(
-            "peer",
+            config.mode.zenoh(),
             &config.link,
             config.lease_ms,
             config.security.as_ref(),
@@ -91,6 +93,34 @@ impl ZenohLink {
             published_bytes: 0,
             published_messages: 0,
         })
+    }
+
+    /// [`ZenohLink::open`], retried every second while a client's router is unreachable
+    /// (a robot may start before it is in range of the router; a peer's session opens
+    /// without anyone to talk to). `None`: `stop` was set first.
+    pub fn open_until(
+        config: &ZenohLinkConfig,
+        stop: &std::sync::atomic::AtomicBool,
+    ) -> Result<Option<Self>, TeamError> {
+        let mut warned = false;
+        loop {
+            match Self::open(config) {
+                Ok(link) => return Ok(Some(link)),
+                Err(TeamError::Open { reason, .. }) if config.mode == LinkMode::Client => {
+                    if !warned {
+                        tracing::warn!(connect = ?config.link.connect, reason, "router unreachable: retrying every second");
+                        warned = true;
+                    }
+                }
+                Err(e) => return Err(e),
+            }
+            for _ in 0..10 {
+                if stop.load(std::sync::atomic::Ordering::Acquire) {
+                    return Ok(None);
+                }
+                std::thread::sleep(Duration::from_millis(100));
+            }
+        }
     }
 
     /// Bytes handed to Zenoh by [`Link::publish`], counted apart from the ledger.

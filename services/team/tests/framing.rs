@@ -102,14 +102,26 @@ fn framing(tls: bool) -> (f64, f64, f64) {
     let dir = tempfile::tempdir().unwrap();
     let team = format!("fr{}{}", std::process::id(), if tls { "s" } else { "p" });
     let (sa, sb) = team_security(dir.path(), &team);
-    let (sa, sb) = if tls { (Some(sa), Some(sb)) } else { (None, None) };
+    let (sa, sb) = if tls {
+        (Some(sa), Some(sb))
+    } else {
+        (None, None)
+    };
     let scheme = if tls { "tls" } else { "tcp" };
     let p1 = free_port();
     let listener = TcpListener::bind("127.0.0.1:0").unwrap();
     let p2 = listener.local_addr().unwrap().port();
-    let publisher_side = session(vec![format!("{scheme}/127.0.0.1:{p1}")], vec![], sa.as_ref());
+    let publisher_side = session(
+        vec![format!("{scheme}/127.0.0.1:{p1}")],
+        vec![],
+        sa.as_ref(),
+    );
     let counter = relay(listener, p1);
-    let subscriber_side = session(vec![], vec![format!("{scheme}/127.0.0.1:{p2}")], sb.as_ref());
+    let subscriber_side = session(
+        vec![],
+        vec![format!("{scheme}/127.0.0.1:{p2}")],
+        sb.as_ref(),
+    );
     let key = key_expr(&team, "b", "descriptors", "a").unwrap();
     let sub = subscriber_side.declare_subscriber(&key).wait().unwrap();
     let publisher = publisher_side

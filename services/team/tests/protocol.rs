@@ -385,12 +385,18 @@ fn the_epoch_file_counts_starts_and_refuses_to_wrap() {
     let file = dir.path().join("team.epoch");
     std::fs::write(&file, format!("{}\n", u64::MAX)).unwrap();
     let err = next_epoch(dir.path()).unwrap_err().to_string();
-    assert!(err.contains("team.epoch") && err.contains("cannot be incremented"), "{err}");
+    assert!(
+        err.contains("team.epoch") && err.contains("cannot be incremented"),
+        "{err}"
+    );
     assert_eq!(
         std::fs::read_to_string(&file).unwrap().trim(),
         u64::MAX.to_string()
     );
     std::fs::write(&file, "seven").unwrap();
     let err = next_epoch(dir.path()).unwrap_err().to_string();
-    assert!(err.contains("team.epoch") && err.contains("not an epoch"), "{err}");
+    assert!(
+        err.contains("team.epoch") && err.contains("not an epoch"),
+        "{err}"
+    );
 }

@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 use doorslam_ipc::wire::{Header, Hello, Kind, Message, RobotId};
 use doorslam_team::certs::{generate, CertsRequest, TeamCa, Validity};
 use doorslam_team::ledger::{Ledger, LedgerHandle};
-use doorslam_team::link::LinkConfig;
+use doorslam_team::link::{LinkConfig, LinkMode};
 use doorslam_team::protocol::{Identity, ProtocolConfig};
 use doorslam_team::security::{Holder, Security, TlsSection};
 use doorslam_team::standin::{EchoBackend, SimPlaces, SimWorld, TruthVerifier};
@@ -95,6 +95,7 @@ fn robot(
             connect,
             multicast_scouting: false,
         },
+        mode: LinkMode::Peer,
         lease_ms: Some(2000),
         security: Some(security),
     })
@@ -305,9 +306,14 @@ fn a_peer_without_the_team_certificate_cannot_connect_or_inject() {
         }
         step(&mut [(&mut b, &mut lb)], start);
     }
-    for (name, i) in ["rogue CA", "plain TCP", "no client certificate", "self-signed"]
-        .iter()
-        .zip(intruders.iter())
+    for (name, i) in [
+        "rogue CA",
+        "plain TCP",
+        "no client certificate",
+        "self-signed",
+    ]
+    .iter()
+    .zip(intruders.iter())
     {
         assert_eq!(i.links(), 0, "{name}: opened a link to b");
     }
@@ -389,7 +395,10 @@ fn a_team_robot_cannot_publish_as_another_and_an_unlisted_certificate_can_do_not
         &["a", "c"],
         vec![
             (format!("doorslam/{team}/b/hello/a"), forged_hello("a")),
-            (format!("doorslam/{team}/b/descriptors/a"), forged_hello("a")),
+            (
+                format!("doorslam/{team}/b/descriptors/a"),
+                forged_hello("a"),
+            ),
             (format!("doorslam/{team}/b/hello/*"), forged_hello("a")),
             (format!("doorslam/{team}/b/hello/c"), vec![0xff; 8]),
         ],
@@ -418,7 +427,9 @@ fn a_team_robot_cannot_publish_as_another_and_an_unlisted_certificate_can_do_not
             "incomplete after 40 s: rendezvous {}, c's own message through {}, b's sessions {:?}",
             rendezvous_done(&a, &b),
             c_through(&b),
-            b.sessions().map(|s| s.peer().to_string()).collect::<Vec<_>>()
+            b.sessions()
+                .map(|s| s.peer().to_string())
+                .collect::<Vec<_>>()
         );
         c.inject();
         z.inject();
@@ -432,7 +443,10 @@ fn a_team_robot_cannot_publish_as_another_and_an_unlisted_certificate_can_do_not
         step(&mut [(&mut a, &mut la), (&mut b, &mut lb)], start);
     }
     // z holds a certificate of the team CA: its link opens, but nothing it sends counts.
-    assert!(z.links() > 0, "z (team CA, not in the roster) could not even connect");
+    assert!(
+        z.links() > 0,
+        "z (team CA, not in the roster) could not even connect"
+    );
     assert!(c.links() > 0);
     let peers: Vec<String> = b.sessions().map(|s| s.peer().to_string()).collect();
     assert_eq!(peers, ["a", "c"], "b's peers (z's token must not count)");
