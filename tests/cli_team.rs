@@ -225,3 +225,12 @@ fn router_flags_are_checked_by_name() {
         "{err}"
     );
 }
+
+#[test]
+fn example_router_config_parses() {
+    let text = std::fs::read_to_string(concat!(".", "/deploy/router.toml")).unwrap();
+    let parsed: doorslam_team::router::RouterFile = toml::from_str(&text).unwrap();
+    let tls = parsed.router.tls.expect("[router.tls]");
+    assert_eq!(tls.roster().unwrap().len(), 3);
+    assert!(parsed.router.listen.iter().all(|e| e.starts_with("tls/")));
+}

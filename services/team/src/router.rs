@@ -120,9 +120,15 @@ impl Router {
 pub fn run(section: &RouterSection, stop: &AtomicBool) -> Result<(), TeamError> {
     let router = Router::open(section)?;
     doorslam_ipc::lifecycle::sd_notify("READY=1\nSTATUS=router");
+    let watchdog = doorslam_ipc::lifecycle::watchdog_interval();
+    let mut last_ping = std::time::Instant::now();
     let mut known = 0usize;
     while !stop.load(Ordering::Acquire) {
         std::thread::sleep(Duration::from_millis(200));
+        if watchdog.is_some_and(|period| last_ping.elapsed() >= period) {
+            doorslam_ipc::lifecycle::sd_notify("WATCHDOG=1");
+            last_ping = std::time::Instant::now();
+        }
         let peers = router.session().info().peers_zid().wait().count()
             + router.session().info().routers_zid().wait().count();
         if peers != known {
