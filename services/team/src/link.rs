@@ -13,6 +13,10 @@
 //! `[a-z0-9_-]`), so no id can contain `/`, `*` or `$` and change what a pattern matches.
 //! Liveliness keys have four chunks and message keys five, so the two never overlap even
 //! for a robot called `alive`.
+//!
+//! With [`Security`] every link is TLS with mutual authentication and Zenoh's access
+//! control lets each robot publish only under its own `<from>` and declare only its own
+//! token (the rules are in [`crate::security`]).
 
 use doorslam_ipc::wire::RobotId;
 use zenoh::{Session, Wait};

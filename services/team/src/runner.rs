@@ -312,8 +312,8 @@ pub fn run(
         path: dir.clone(),
         source,
     })?;
-    // TLS files are checked before anything is written: a bad certificate fails the start
-    // naming the file, and the epoch file below is written before the link opens.
+    // TLS files are checked before the epoch advances: a bad certificate fails the start
+    // naming the file; the epoch file is written before the link opens.
     let security = match &section.tls {
         Some(tls) => Some(
             Security::check(tls, &section.name, &Holder::Robot(id.clone()))
