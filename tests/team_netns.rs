@@ -3,7 +3,9 @@
 //! drone radio LAN. They meet, the link is cut with nftables mid-exchange, they meet again;
 //! every descriptor must be delivered exactly once, the ledgers must add up to the bytes
 //! the links published (and to what crossed the interface), and `doorslam bw --json` on
-//! the run folder must print Table II's fields.
+//! the run folder must print Table II's fields. The acceptance run uses TLS with mutual
+//! authentication and access control (`[team.tls]`, as a deployed team would); the radio
+//! run plain TCP.
 //!
 //! Needs root (network namespaces), `ip` (iproute2) and `nft` (nftables): `deploy/setup`
 //! installs both. Names are unique per test process; everything is removed even when the
@@ -75,6 +77,9 @@ impl Drop for Net {
 
 /// What a test's robots run with.
 struct Params {
+    /// TLS with mutual authentication and access control (certificates from
+    /// `doorslam team certs`); false: plain TCP.
+    tls: bool,
     lease_ms: u64,
     keyframes: u64,
     keyframe_interval_ms: u64,
@@ -82,6 +87,7 @@ struct Params {
 }
 
 const ACCEPTANCE: Params = Params {
+    tls: true,
     lease_ms: 1500,
     keyframes: 300,
     keyframe_interval_ms: 20,
@@ -103,6 +109,15 @@ fn config(
     } else {
         format!("\"{connect}\"")
     };
+    let certs = dir.join("certs");
+    let tls = if p.tls {
+        format!(
+            "\n[team.tls]\nca = \"{c}/ca.pem\"\ncert = \"{c}/robots/{robot}/cert.pem\"\nkey = \"{c}/robots/{robot}/key.pem\"\nrobots = [\"a\", \"b\"]\n",
+            c = certs.display()
+        )
+    } else {
+        String::new()
+    };
     let text = format!(
         r#"[robot]
 id = "{robot}"
@@ -123,7 +138,7 @@ pieces = "standin"
 keyframes = {keyframes}
 keyframe_interval_ms = {interval}
 features_per_keyframe = {features}
-"#,
+{tls}"#,
         run = dir.join("run").display(),
         lease = p.lease_ms,
         keyframes = p.keyframes,
@@ -177,12 +192,26 @@ fn require_root_and_tools() {
     }
 }
 
-/// Starts robot a (listening) and b (connecting to a), each in its namespace.
+/// Starts robot a (listening) and b (connecting to a), each in its namespace; with TLS,
+/// their certificates first (`doorslam team certs`).
 fn start_robots(net: &mut Net, d: &Path, team: &str, p: &Params) {
-    let ep = |i: usize| format!("tcp/{}:7447", net.addr[i]);
+    let bin = env!("CARGO_BIN_EXE_doorslam");
+    if p.tls {
+        let out = Command::new(bin)
+            .args(["team", "certs", "--robots", "a,b", "--team", team, "--out"])
+            .arg(d.join("certs"))
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let scheme = if p.tls { "tls" } else { "tcp" };
+    let ep = |i: usize| format!("{scheme}/{}:7447", net.addr[i]);
     let ca = config(d, "a", 0, team, &ep(0), "", p);
     let cb = config(d, "b", 1, team, &ep(1), &ep(0), p);
-    let bin = env!("CARGO_BIN_EXE_doorslam");
     for (i, cfg) in [(0, &ca), (1, &cb)] {
         let log = std::fs::File::create(d.join(format!("robot{i}.log"))).unwrap();
         let child = Command::new("ip")
@@ -293,6 +322,12 @@ fn two_robots_in_network_namespaces_meet_are_cut_off_and_meet_again() {
     for (i, (robot, s)) in [("a", &sa), ("b", &sb)].into_iter().enumerate() {
         let text = std::fs::read_to_string(d.join("run").join(robot).join("ledger.json")).unwrap();
         let ledger: Value = serde_json::from_str(&text).unwrap();
+        // The link ran over TLS: its wire estimate carries TLS's record per message.
+        assert_eq!(
+            ledger["framing"]["overhead_bytes_per_message"],
+            doorslam_team::ledger::ZENOH_FRAMING_BYTES + doorslam_team::ledger::TLS_RECORD_BYTES,
+            "{robot}"
+        );
         let sum = |field: &str| -> u64 {
             ledger["traffic"]
                 .as_array()
@@ -376,6 +411,7 @@ fn through_30_percent_loss_and_250_kbit_every_descriptor_arrives_once() {
     let d = dir.path();
     let team = format!("nsr{}", std::process::id());
     let radio = Params {
+        tls: false,
         lease_ms: 3000,
         keyframes: 150,
         keyframe_interval_ms: 50,

@@ -103,9 +103,13 @@ pub fn next_epoch(dir: &std::path::Path, name: &str) -> Result<u64, EpochError> 
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => 0,
         Err(e) => return Err(fail(e.to_string())),
     };
-    let epoch = previous
-        .checked_add(1)
-        .ok_or_else(|| fail("epoch counter exhausted".into()))?;
+    // A counter at the top of the range is a corrupted file, not a restart count: refused
+    // (never wrapped to 0, which every peer would take for a stale replay).
+    let epoch = previous.checked_add(1).ok_or_else(|| {
+        fail(format!(
+            "epoch {previous} cannot be incremented: remove the file to start at 1"
+        ))
+    })?;
     let tmp = path.with_extension("tmp");
     std::fs::write(&tmp, format!("{epoch}\n")).map_err(|e| fail(e.to_string()))?;
     std::fs::rename(&tmp, &path).map_err(|e| fail(e.to_string()))?;

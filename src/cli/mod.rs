@@ -9,8 +9,10 @@ mod pcm;
 mod pgo;
 mod place;
 mod replay;
+mod router;
 mod service;
 pub(crate) mod sim;
+mod team;
 mod up;
 mod verify;
 mod vo;
@@ -55,6 +57,10 @@ pub enum Command {
     Replay(replay::ReplayArgs),
     /// Measure what each inter-robot message kind costs in bytes.
     Bw(bw::BwArgs),
+    /// The team link's security: certificates for TLS with mutual authentication.
+    Team(team::TeamArgs),
+    /// Run a Zenoh router for large fleets (robots connect to it instead of to each other).
+    Router(router::RouterArgs),
     /// Run the demo: a team of drones, each a host of its own, building one map; a report.
     Demo(demo::DemoArgs),
     /// Measure the on-robot transports (iceoryx2, Zenoh shared memory, Unix socket).
@@ -87,6 +93,8 @@ pub fn main() -> ExitCode {
         Command::Verify(args) => verify::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Bw(args) => bw::run(args),
+        Command::Team(args) => team::run(args),
+        Command::Router(args) => router::run(args),
         Command::Demo(args) => demo::run(args),
         Command::Bench(args) => bench::run(args),
     };

@@ -14,14 +14,20 @@
 //! - [`standin`]: simulated descriptors, a truth-table verifier, back-end stand-ins.
 //! - [`bw`]: the bandwidth report (`doorslam bw`) from ledger files.
 //! - [`runner`]: `doorslam service team` with the stand-ins.
+//! - [`security`]: TLS with mutual authentication and access control of the team link.
+//! - [`certs`]: the team CA and the robots' and routers' certificates (`doorslam team certs`).
+//! - [`router`]: an embedded Zenoh router for large fleets (`doorslam router`).
 
 pub mod bw;
+pub mod certs;
 pub mod emulate;
 pub mod ledger;
 pub mod link;
 pub mod node;
 pub mod protocol;
+pub mod router;
 pub mod runner;
+pub mod security;
 pub mod standin;
 pub mod zenoh_link;
 

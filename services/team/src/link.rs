@@ -13,9 +13,15 @@
 //! `[a-z0-9_-]`), so no id can contain `/`, `*` or `$` and change what a pattern matches.
 //! Liveliness keys have four chunks and message keys five, so the two never overlap even
 //! for a robot called `alive`.
+//!
+//! With [`Security`] every link is TLS with mutual authentication and Zenoh's access
+//! control lets each robot publish only under its own `<from>` and declare only its own
+//! token (the rules are in [`crate::security`]).
 
 use doorslam_ipc::wire::RobotId;
 use zenoh::{Session, Wait};
+
+use crate::security::{check_endpoints, Security, SecurityError};
 
 /// Failures of the inter-robot link.
 #[derive(Debug, thiserror::Error)]
@@ -36,18 +42,45 @@ pub enum TeamError {
     Kind(String),
     #[error("zenoh {what}: {reason}")]
     Zenoh { what: &'static str, reason: String },
+    #[error(transparent)]
+    Security(#[from] SecurityError),
 }
 
 /// How one robot joins the team network.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct LinkConfig {
-    /// Endpoints to listen on, e.g. `tcp/0.0.0.0:7447` (radio) or `tcp/127.0.0.1:PORT` (tests).
+    /// Endpoints to listen on, e.g. `tcp/0.0.0.0:7447` (radio) or `tcp/127.0.0.1:PORT` (tests);
+    /// `tls/...` with [`Security`].
     pub listen: Vec<String>,
     /// Endpoints of peers to connect to.
     pub connect: Vec<String>,
     /// Multicast scouting finds peers on a shared radio LAN; off in tests so that
     /// concurrent test runs never discover each other.
     pub multicast_scouting: bool,
+}
+
+/// How a robot's session joins the team network (`[team] mode`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LinkMode {
+    /// A Zenoh peer: finds the other robots (multicast scouting on the radio LAN, or
+    /// `connect`) and talks to each directly.
+    #[default]
+    Peer,
+    /// A Zenoh client of a router (`doorslam router`): every message goes through the
+    /// router. Zenoh 1.10 routers relay between their clients, not between peers (peers of
+    /// one router are assumed to reach each other directly).
+    Client,
+}
+
+impl LinkMode {
+    /// Zenoh's name of the mode.
+    pub fn zenoh(self) -> &'static str {
+        match self {
+            LinkMode::Peer => "peer",
+            LinkMode::Client => "client",
+        }
+    }
 }
 
 fn json_list(items: &[String]) -> String {
@@ -66,6 +99,20 @@ pub fn open_peer_with_lease(
     link: &LinkConfig,
     lease_ms: Option<u64>,
 ) -> Result<Session, TeamError> {
+    open_team_session("peer", link, lease_ms, None)
+}
+
+/// Opens a Zenoh session of the team link in `mode` (`peer` or `client` for robots,
+/// [`LinkMode`]; `router` for [`crate::router`]); with `security`, TLS with mutual authentication and the team's
+/// access control ([`crate::security`]), and only `tls/` endpoints.
+pub fn open_team_session(
+    mode: &str,
+    link: &LinkConfig,
+    lease_ms: Option<u64>,
+    security: Option<&Security>,
+) -> Result<Session, TeamError> {
+    check_endpoints(&link.listen, "listen", security.is_some())?;
+    check_endpoints(&link.connect, "connect", security.is_some())?;
     let mut config = zenoh::Config::default();
     let mut set = |key: &'static str, value: String| {
         config
@@ -75,7 +122,7 @@ pub fn open_peer_with_lease(
                 reason: e.to_string(),
             })
     };
-    set("mode", "\"peer\"".into())?;
+    set("mode", format!("{mode:?}"))?;
     set("listen/endpoints", json_list(&link.listen))?;
     set("connect/endpoints", json_list(&link.connect))?;
     set(
@@ -88,6 +135,9 @@ pub fn open_peer_with_lease(
     set("transport/shared_memory/enabled", "false".into())?;
     if let Some(lease) = lease_ms {
         set("transport/link/tx/lease", lease.to_string())?;
+    }
+    if let Some(security) = security {
+        security.apply(&mut config)?;
     }
     zenoh::open(config).wait().map_err(|e| TeamError::Open {
         listen: link.listen.clone(),

@@ -295,6 +295,8 @@ pub struct PeerSession {
     ack_sequence: u64,
     hello_queued: bool,
     peer_epoch: Option<u64>,
+    /// A message of the peer arrived in this meeting: its epoch is settled until the next.
+    epoch_settled: bool,
     peer_robot: Option<u8>,
     received: BTreeMap<Kind, Received>,
     ack_due: BTreeSet<Kind>,
@@ -331,6 +333,7 @@ impl PeerSession {
             ack_sequence: 0,
             hello_queued: false,
             peer_epoch: None,
+            epoch_settled: false,
             peer_robot: None,
             received: BTreeMap::new(),
             ack_due: BTreeSet::new(),
@@ -394,6 +397,7 @@ impl PeerSession {
     /// the next [`PeerSession::poll`] (the cut-off meeting resumes here).
     pub fn meeting_started(&mut self) {
         self.connected = true;
+        self.epoch_settled = false;
         self.stats.meetings += 1;
         for outbox in self.outboxes.values_mut() {
             for p in outbox.pending.values_mut() {
@@ -538,13 +542,19 @@ impl PeerSession {
     pub fn receive(&mut self, msg: Message, svc: &mut Services<'_>) -> Result<(), Refusal> {
         let epoch = msg.header.epoch;
         match self.peer_epoch {
-            Some(current) if epoch < current => {
+            Some(current) if epoch == current => {}
+            // Older than what the peer said in this meeting: a replay from before a restart.
+            // An epoch claim lasts until the peer's next appearance, no longer: the first
+            // message of a meeting sets it again, lower or higher, so a claim that was
+            // wrong (an epoch file lost, or a huge epoch from a bug) cannot refuse the
+            // robot's real messages forever. Only the robot itself can claim its epoch
+            // when the link runs with TLS and access control (`crate::security`).
+            Some(current) if epoch < current && self.epoch_settled => {
                 return Err(Refusal::StaleEpoch {
                     got: epoch,
                     current,
                 })
             }
-            Some(current) if epoch == current => {}
             _ => {
                 // First message, or the peer restarted: its old sequences mean nothing
                 // now, and it has forgotten this robot's Hello.
@@ -557,6 +567,7 @@ impl PeerSession {
                 }
             }
         }
+        self.epoch_settled = true;
         let kind = msg.kind();
         let sequence = msg.header.sequence;
         if let Body::Ack(ack) = msg.body {

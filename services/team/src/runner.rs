@@ -15,9 +15,10 @@ use doorslam_ipc::wire::RobotId;
 use serde::{Deserialize, Serialize};
 
 use crate::ledger::{Ledger, LedgerError, LedgerHandle};
-use crate::link::{team_name, LinkConfig, TeamError};
+use crate::link::{team_name, LinkConfig, LinkMode, TeamError};
 use crate::node::{LinkEvent, Node, Pieces};
 use crate::protocol::{Identity, PeerStats, ProtocolConfig};
+use crate::security::{Holder, Security, TlsSection};
 use crate::standin::{BackendLog, EchoBackend, SimPlaces, SimWorld, TruthVerifier};
 use crate::zenoh_link::{ZenohLink, ZenohLinkConfig};
 
@@ -28,6 +29,10 @@ pub struct TeamSection {
     /// Team prefix of every key expression (`doorslam/<name>/...`).
     #[serde(default = "default_name")]
     pub name: String,
+    /// `peer` (default): robots reach each other directly; `client`: through a
+    /// `doorslam router` in `connect` (then `listen = []`).
+    #[serde(default)]
+    pub mode: LinkMode,
     #[serde(default = "default_listen")]
     pub listen: Vec<String>,
     #[serde(default)]
@@ -56,6 +61,10 @@ pub struct TeamSection {
     pub pieces: PiecesKind,
     #[serde(default)]
     pub standin: StandinSection,
+    /// `[team.tls]`: TLS with mutual authentication and access control (see
+    /// [`crate::security`]); absent = plain TCP, open to anyone on the network.
+    #[serde(default)]
+    pub tls: Option<TlsSection>,
 }
 
 /// `[team] pieces`.
@@ -150,6 +159,7 @@ impl Default for TeamSection {
     fn default() -> Self {
         Self {
             name: default_name(),
+            mode: LinkMode::Peer,
             listen: default_listen(),
             connect: Vec::new(),
             multicast_scouting: true,
@@ -161,6 +171,7 @@ impl Default for TeamSection {
             raw_image_height: default_height(),
             pieces: PiecesKind::default(),
             standin: StandinSection::default(),
+            tls: None,
         }
     }
 }
@@ -212,6 +223,20 @@ impl TeamSection {
                 "standin.features_per_keyframe",
                 "must be 1 to MAX_FEATURES",
             ));
+        }
+        if let Some(tls) = &self.tls {
+            tls.roster().map_err(|e| bad("tls", &e))?;
+        }
+        if self.mode == LinkMode::Client {
+            if !self.listen.is_empty() {
+                return Err(bad(
+                    "listen",
+                    "a client (mode = \"client\") does not listen: set listen = []",
+                ));
+            }
+            if self.connect.is_empty() && !self.multicast_scouting {
+                return Err(bad("connect", "a client (mode = \"client\") needs the router's endpoint in connect (or multicast scouting)"));
+            }
         }
         Ok(())
     }
@@ -453,6 +478,18 @@ pub fn run_robot(
         path: dir.clone(),
         source,
     })?;
+    // TLS files are checked before the epoch advances: a bad certificate fails the start
+    // naming the file; the epoch file is written before the link opens.
+    let security = match &section.tls {
+        Some(tls) => Some(
+            Security::check(tls, &section.name, &Holder::Robot(id.clone()))
+                .map_err(TeamError::from)?,
+        ),
+        None => {
+            tracing::warn!(team = %section.name, "team link is open: no [team.tls], anyone on the network can join the team and inject messages (see doorslam team certs)");
+            None
+        }
+    };
     let mut epoch = next_epoch(&dir)?;
     // A restarted link continues its ledger: every byte of the run stays counted.
     let previous = dir.join("ledger.json");
@@ -485,7 +522,11 @@ pub fn run_robot(
             )
         }
     };
-    let ledger = LedgerHandle::new(ledger);
+    let ledger = LedgerHandle::new(if security.is_some() {
+        ledger.over_tls()
+    } else {
+        ledger
+    });
     let config = ProtocolConfig {
         retransmit_ms: section.retransmit_ms,
         ..ProtocolConfig::default()
@@ -499,16 +540,36 @@ pub fn run_robot(
         Node::new(me, config, ledger.clone(), side.pieces())
     };
     let mut node = new_node(epoch, side);
-    let mut link = ZenohLink::open(&ZenohLinkConfig {
-        team: section.name.clone(),
-        me: id.clone(),
-        link: LinkConfig {
-            listen: section.listen.clone(),
-            connect: section.connect.clone(),
-            multicast_scouting: section.multicast_scouting,
+    let link = ZenohLink::open_until(
+        &ZenohLinkConfig {
+            team: section.name.clone(),
+            me: id.clone(),
+            link: LinkConfig {
+                listen: section.listen.clone(),
+                connect: section.connect.clone(),
+                multicast_scouting: section.multicast_scouting,
+            },
+            mode: section.mode,
+            lease_ms: Some(section.lease_ms),
+            security,
         },
-        lease_ms: Some(section.lease_ms),
-    })?;
+        stop,
+    )?;
+    let Some(mut link) = link else {
+        tracing::info!(robot, "team: stopped before the link opened");
+        return Ok(Status {
+            robot: robot.into(),
+            epoch,
+            keyframes_created: side.keyframes(),
+            published_bytes: 0,
+            published_messages: 0,
+            peers: BTreeMap::new(),
+            present: Vec::new(),
+            backend: side.backend_status(),
+            pieces: side.extra_status(),
+            finished: true,
+        });
+    };
     side.epoch_started(epoch)?;
     doorslam_ipc::lifecycle::sd_notify(&format!(
         "READY=1\nSTATUS=team {} epoch {epoch}",

@@ -16,10 +16,11 @@ use zenoh::sample::{Sample, SampleKind};
 use zenoh::{Session, Wait};
 
 use crate::link::{
-    alive_expr, alive_pattern, inbox_expr, key_expr, open_peer_with_lease, parse_alive,
-    parse_message_key, LinkConfig, TeamError,
+    alive_expr, alive_pattern, inbox_expr, key_expr, open_team_session, parse_alive,
+    parse_message_key, LinkConfig, LinkMode, TeamError,
 };
 use crate::node::{Link, LinkError, LinkEvent};
+use crate::security::Security;
 
 /// How a robot joins its team over Zenoh.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -27,8 +28,13 @@ pub struct ZenohLinkConfig {
     pub team: String,
     pub me: RobotId,
     pub link: LinkConfig,
+    /// Peer (robots reach each other directly) or client of a router.
+    pub mode: LinkMode,
     /// Zenoh link lease: a peer out of range is declared gone after this long.
     pub lease_ms: Option<u64>,
+    /// TLS with mutual authentication and access control; None: plain TCP, open to anyone
+    /// on the network.
+    pub security: Option<Security>,
 }
 
 /// One robot's Zenoh end of the team link.
@@ -54,7 +60,12 @@ fn zerr(what: &'static str) -> impl Fn(zenoh::Error) -> TeamError {
 impl ZenohLink {
     /// Opens the session, declares the token and both subscribers.
     pub fn open(config: &ZenohLinkConfig) -> Result<Self, TeamError> {
-        let session = open_peer_with_lease(&config.link, config.lease_ms)?;
+        let session = open_team_session(
+            config.mode.zenoh(),
+            &config.link,
+            config.lease_ms,
+            config.security.as_ref(),
+        )?;
         let me = config.me.as_str();
         let inbox = session
             .declare_subscriber(inbox_expr(&config.team, me)?)
@@ -84,6 +95,34 @@ impl ZenohLink {
         })
     }
 
+    /// [`ZenohLink::open`], retried every second while a client's router is unreachable
+    /// (a robot may start before it is in range of the router; a peer's session opens
+    /// without anyone to talk to). `None`: `stop` was set first.
+    pub fn open_until(
+        config: &ZenohLinkConfig,
+        stop: &std::sync::atomic::AtomicBool,
+    ) -> Result<Option<Self>, TeamError> {
+        let mut warned = false;
+        loop {
+            match Self::open(config) {
+                Ok(link) => return Ok(Some(link)),
+                Err(TeamError::Open { reason, .. }) if config.mode == LinkMode::Client => {
+                    if !warned {
+                        tracing::warn!(connect = ?config.link.connect, reason, "router unreachable: retrying every second");
+                        warned = true;
+                    }
+                }
+                Err(e) => return Err(e),
+            }
+            for _ in 0..10 {
+                if stop.load(std::sync::atomic::Ordering::Acquire) {
+                    return Ok(None);
+                }
+                std::thread::sleep(Duration::from_millis(100));
+            }
+        }
+    }
+
     /// Bytes handed to Zenoh by [`Link::publish`], counted apart from the ledger.
     pub fn published_bytes(&self) -> u64 {
         self.published_bytes
@@ -105,6 +144,14 @@ impl ZenohLink {
     fn drain(&self, out: &mut Vec<LinkEvent>) {
         while let Ok(Some(s)) = self.alive.try_recv() {
             let Some(peer) = parse_alive(&self.team, s.key_expr().as_str()) else {
+                // A token under the team's prefix that names no valid robot: counted once
+                // (when declared, not again when it goes).
+                if s.kind() == SampleKind::Put {
+                    out.push(LinkEvent::Malformed {
+                        key: s.key_expr().to_string(),
+                        bytes: 0,
+                    });
+                }
                 continue;
             };
             if peer == self.me {

@@ -33,6 +33,10 @@ fn config() -> ProtocolConfig {
 }
 
 fn robot(bus: &Bus, id: &str, index: u8, keyframes: u64) -> Robot {
+    robot_in_epoch(bus, id, index, keyframes, 1)
+}
+
+fn robot_in_epoch(bus: &Bus, id: &str, index: u8, keyframes: u64, epoch: u64) -> Robot {
     let world = SimWorld::default();
     let id = RobotId::new(id).unwrap();
     let place = SimPlaces::new(world, index, 20);
@@ -43,9 +47,9 @@ fn robot(bus: &Bus, id: &str, index: u8, keyframes: u64) -> Robot {
     let me = Identity {
         id: id.clone(),
         robot: index,
-        epoch: 1,
+        epoch,
     };
-    let ledger = LedgerHandle::new(Ledger::new(id.as_str(), "test", 1, 752 * 480));
+    let ledger = LedgerHandle::new(Ledger::new(id.as_str(), "test", epoch, 752 * 480));
     let node = Node::new(
         me,
         config(),
@@ -320,4 +324,79 @@ fn unknown_garbage_wrong_sender_and_replayed_messages_are_dropped_and_counted() 
     assert_eq!(sb.descriptors_redelivered, 0);
     // The link trait is what the robots used.
     let _: &dyn Link = &a.link;
+}
+
+/// A robot that ran in a huge epoch (a bug, a corrupted epoch file: u64::MAX) and then
+/// restarted in a sane, lower one (the file repaired or lost) is refused no longer than
+/// until its next appearance: the first message of a meeting sets the peer's epoch again.
+/// Within a meeting an older epoch is still a stale replay.
+#[test]
+fn an_epoch_claim_lasts_until_the_peers_next_appearance() {
+    let bus = Bus::new(0.0, 13);
+    let mut a = robot_in_epoch(&bus, "a", 0, 40, u64::MAX);
+    let mut b = robot(&bus, "b", 1, 40);
+    let (ida, idb) = (a.id.clone(), b.id.clone());
+    let mut now = 0;
+    bus.join(&ida, &idb);
+    step_until(&mut [&mut a, &mut b], &mut now, 3000, |r| {
+        everything_acknowledged(r[0], &idb) && delivered(r[1], &ida).len() == 40
+    });
+    // a goes away and comes back in epoch 3, having forgotten everything.
+    bus.cut(&ida, &idb);
+    run(&mut [&mut a, &mut b], &mut now, 20);
+    let mut a = robot_in_epoch(&bus, "a", 0, 60, 3);
+    bus.join(&ida, &idb);
+    step_until(&mut [&mut a, &mut b], &mut now, 5000, |r| {
+        everything_acknowledged(r[0], &idb)
+            && everything_acknowledged(r[1], &ida)
+            && delivered(r[1], &ida).len() == 60
+    });
+    let ledger = b.node.ledger().lock();
+    assert_eq!(ledger.dropped_count("stale_epoch"), 0);
+    drop(ledger);
+    let sb = b.node.session(&ida).unwrap().stats().clone();
+    assert_eq!(sb.meetings, 2);
+    // The restarted a sent its 40 old keyframes again (it forgot sending them): b takes
+    // each descriptor once.
+    assert_eq!(sb.descriptors_delivered, 60);
+    assert_eq!(sb.descriptors_redelivered, 40);
+    // Within the meeting, the old epoch is a replay and is refused.
+    let replay = Message::new(
+        Header {
+            sender: ida.clone(),
+            epoch: 2,
+            sequence: 0,
+        },
+        Hello { robot: 0 },
+    );
+    bus.inject(&idb, &ida, "hello", replay.encode().unwrap());
+    run(&mut [&mut a, &mut b], &mut now, 3);
+    assert_eq!(b.node.ledger().lock().dropped_count("stale_epoch"), 1);
+}
+
+/// The epoch file is written before the link opens, incremented at every start; one at the
+/// top of the range (corrupted) is refused by name, never wrapped to 0.
+#[test]
+fn the_epoch_file_counts_starts_and_refuses_to_wrap() {
+    use doorslam_team::runner::next_epoch;
+    let dir = tempfile::tempdir().unwrap();
+    assert_eq!(next_epoch(dir.path()).unwrap(), 1);
+    assert_eq!(next_epoch(dir.path()).unwrap(), 2);
+    let file = dir.path().join("team.epoch");
+    std::fs::write(&file, format!("{}\n", u64::MAX)).unwrap();
+    let err = next_epoch(dir.path()).unwrap_err().to_string();
+    assert!(
+        err.contains("team.epoch") && err.contains("cannot be incremented"),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(&file).unwrap().trim(),
+        u64::MAX.to_string()
+    );
+    std::fs::write(&file, "seven").unwrap();
+    let err = next_epoch(dir.path()).unwrap_err().to_string();
+    assert!(
+        err.contains("team.epoch") && err.contains("not an epoch"),
+        "{err}"
+    );
 }

@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 
 use doorslam_ipc::wire::RobotId;
 use doorslam_team::ledger::{Direction, Ledger, LedgerHandle};
+use doorslam_team::link::LinkMode;
 use doorslam_team::protocol::{Identity, ProtocolConfig};
 use doorslam_team::standin::{EchoBackend, SimPlaces, SimWorld, TruthVerifier};
 use doorslam_team::zenoh_link::{ZenohLink, ZenohLinkConfig};
@@ -55,7 +56,9 @@ fn robot(
             connect,
             multicast_scouting: false,
         },
+        mode: LinkMode::Peer,
         lease_ms: Some(2000),
+        security: None,
     })
     .unwrap();
     (node, link)
@@ -139,7 +142,9 @@ fn a_thousand_descriptor_messages_per_second_arrive_without_loss() {
                 connect,
                 multicast_scouting: false,
             },
+            mode: LinkMode::Peer,
             lease_ms: None,
+            security: None,
         })
         .unwrap()
     };
