@@ -68,10 +68,27 @@ struct Outcome {
     edges: Vec<(u64, u64)>,
 }
 
+/// Keyframe ids in a back-end journal.
+fn journaled_keyframes(journal: &Path) -> usize {
+    Journal::read(journal).map_or(0, |r| {
+        r.entries
+            .iter()
+            .filter(|e| matches!(e, Entry::Keyframe { .. }))
+            .count()
+    })
+}
+
 /// Runs camera (replay of `data`) → frontend → backend under `doorslam up` until the
 /// replay has finished, then stops it (services stop in reverse start order: the camera,
-/// then the front-end, which processes the frames still queued, then the back-end).
-fn run_pipeline(tmp: &Path, robot: &str, data: &Path) -> Outcome {
+/// then the front-end, which processes the frames still queued, then the back-end). With
+/// `kill_frontend_after: Some(n)`, the front-end is SIGKILLed once the back-end has `n`
+/// keyframes, and `up` restarts it.
+fn run_pipeline(
+    tmp: &Path,
+    robot: &str,
+    data: &Path,
+    kill_frontend_after: Option<usize>,
+) -> Outcome {
     let config = tmp.join("robot.toml");
     let (state, run) = (tmp.join("state"), tmp.join("run"));
     // Half real time (5 frames/s): the front-end keeps up on a loaded 2-core machine, so
@@ -88,15 +105,15 @@ fn run_pipeline(tmp: &Path, robot: &str, data: &Path) -> Outcome {
         ),
     )
     .unwrap();
+    let restart: &[&str] = match kill_frontend_after {
+        Some(_) => &["--restart", "on-failure", "--restart-delay-s", "0.5"],
+        None => &["--restart", "no"],
+    };
+    let journal = state.join(robot).join("backend.journal");
     let mut up = Guard(
         Command::new(BIN)
-            .args([
-                "up",
-                "--config",
-                config.to_str().unwrap(),
-                "--restart",
-                "no",
-            ])
+            .args(["up", "--config", config.to_str().unwrap()])
+            .args(restart)
             .env("RUST_LOG", "info")
             .stderr(Stdio::piped())
             .spawn()
@@ -104,7 +121,24 @@ fn run_pipeline(tmp: &Path, robot: &str, data: &Path) -> Outcome {
     );
     let (text, reader) = collect_log(&mut up.0);
     let deadline = Instant::now() + Duration::from_secs(120);
-    while !text.lock().unwrap().contains("replay: finished") {
+    let mut kill_at = kill_frontend_after;
+    let done = |log: &str| {
+        log.contains("replay: finished")
+            && (kill_frontend_after.is_none() || log.matches("frontend: ready").count() == 2)
+    };
+    while !done(&text.lock().unwrap()) {
+        if kill_at.is_some_and(|n| journaled_keyframes(&journal) >= n) {
+            kill_at = None;
+            let pid: i32 = text
+                .lock()
+                .unwrap()
+                .lines()
+                .find_map(|l| l.strip_prefix("[up] started frontend (pid "))
+                .and_then(|rest| rest.trim_end_matches(')').parse().ok())
+                .expect("frontend pid in up's log");
+            // SAFETY: kill(2) of the front-end process `up` started for this test.
+            unsafe { libc::kill(pid, libc::SIGKILL) };
+        }
         if let Some(status) = up.0.try_wait().unwrap() {
             panic!(
                 "doorslam up exited early ({status}):\n{}",
@@ -144,7 +178,7 @@ fn run_pipeline(tmp: &Path, robot: &str, data: &Path) -> Outcome {
         .collect();
     let status_path = run.join(robot).join("frontend.json");
     let status = serde_json::from_str(&std::fs::read_to_string(&status_path).unwrap()).unwrap();
-    let journal = Journal::read(&state.join(robot).join("backend.journal")).unwrap();
+    let journal = Journal::read(&journal).unwrap();
     let mut keyframes = Vec::new();
     let mut edges = Vec::new();
     for e in &journal.entries {
@@ -226,7 +260,7 @@ fn camera_frontend_backend_follow_the_ground_truth() {
     let data = data_dir();
     let tmp = tempfile::tempdir().unwrap();
     let robot = format!("vo{}", std::process::id());
-    let o = run_pipeline(tmp.path(), &robot, &data);
+    let o = run_pipeline(tmp.path(), &robot, &data, None);
     let truth = read_kitti(&data.join("poses.txt"));
 
     assert!(!o.log.contains("not connected"), "{}", o.log);
@@ -288,7 +322,7 @@ fn black_frames_lose_the_track_and_the_backend_keeps_one_graph() {
         std::fs::copy(src.join(file), data.join(file)).unwrap();
     }
     let robot = format!("voblank{}", std::process::id());
-    let o = run_pipeline(tmp.path(), &robot, &data);
+    let o = run_pipeline(tmp.path(), &robot, &data, None);
     let truth = read_kitti(&data.join("poses.txt"));
 
     let s = &o.status;
@@ -330,5 +364,73 @@ fn black_frames_lose_the_track_and_the_backend_keeps_one_graph() {
     assert!(
         end < 0.05 * distance,
         "end-point error {end:.3} m over {distance:.1} m"
+    );
+}
+
+/// Whether the edges join every keyframe into one graph.
+fn connected(ids: &[u64], edges: &[(u64, u64)]) -> bool {
+    let mut parent: std::collections::BTreeMap<u64, u64> = ids.iter().map(|&i| (i, i)).collect();
+    fn root(p: &std::collections::BTreeMap<u64, u64>, mut i: u64) -> u64 {
+        while p[&i] != i {
+            i = p[&i];
+        }
+        i
+    }
+    for &(a, b) in edges {
+        if parent.contains_key(&a) && parent.contains_key(&b) {
+            let (ra, rb) = (root(&parent, a), root(&parent, b));
+            parent.insert(ra, rb);
+        }
+    }
+    let roots: std::collections::BTreeSet<u64> = ids.iter().map(|&i| root(&parent, i)).collect();
+    roots.len() == 1
+}
+
+#[test]
+fn a_killed_frontend_resumes_its_ids_and_the_backend_keeps_one_graph() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let data = data_dir();
+    let tmp = tempfile::tempdir().unwrap();
+    let robot = format!("vokill{}", std::process::id());
+    let o = run_pipeline(tmp.path(), &robot, &data, Some(8));
+
+    assert!(
+        o.log.contains("[up] frontend failed (signal: 9"),
+        "{}",
+        o.log
+    );
+    assert!(
+        o.log.contains("frontend: resuming after the last keyframe"),
+        "{}",
+        o.log
+    );
+    assert!(
+        !o.log.contains("not connected"),
+        "one connected graph:\n{}",
+        o.log
+    );
+    // Ids continue after the restart, one skipped (the one the killed process may have
+    // been sending), never reused.
+    let ids = &o.keyframes;
+    let steps: Vec<u64> = ids.windows(2).map(|w| w[1] - w[0]).collect();
+    assert_eq!(
+        steps.iter().filter(|&&d| d != 1).collect::<Vec<_>>(),
+        vec![&2],
+        "one id skipped: {ids:?}"
+    );
+    assert!(ids.len() >= 15, "{ids:?}");
+    assert!(connected(ids, &o.edges), "{ids:?} {:?}", o.edges);
+    // The status is the restarted process's: it began after the skipped id.
+    let s = &o.status;
+    let first = s["first_keyframe"].as_u64().unwrap();
+    assert!(
+        ids.contains(&first) && !ids.contains(&(first - 1)),
+        "{s} {ids:?}"
+    );
+    assert_eq!(s["links"], 1, "{s}");
+    let last = o.trajectory.last().unwrap().0;
+    assert!(
+        last / PERIOD_S > 30.0,
+        "the back-end went on optimizing: ends at {last} s"
     );
 }

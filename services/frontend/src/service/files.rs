@@ -3,7 +3,8 @@
 //!   and at exit, for operators and tests;
 //! - `frontend.resume`: the last keyframe published (id, stamp, pose), rewritten after
 //!   each keyframe, so a restarted front-end continues the keyframe ids (the back-end
-//!   skips ids it already has as duplicates) and links its first keyframe to that one.
+//!   skips ids it already has as duplicates; see [`super::FrontendState::new`] for the one
+//!   id it skips) and links its first keyframe to that one.
 //!
 //! Both are written to a temporary file and renamed over the old one: a reader (or a
 //! restart after a crash) sees the old or the new content, never half of it.

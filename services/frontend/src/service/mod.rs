@@ -166,7 +166,7 @@ fn on_sample(
     state: &mut FrontendState,
     channels: &Channels,
     config: &FrontendConfig,
-    files: &Files,
+    writer: &mut Writer,
     frame: &StereoFrame,
 ) -> Result<(), ServiceError> {
     let header = *frame.header();
@@ -213,42 +213,63 @@ fn on_sample(
     }
     if step.keyframe.is_some() {
         if let Some(resume) = state.resume() {
-            files.write_resume(&resume)?;
+            writer.outcome(writer.files.write_resume(&resume));
         }
     }
     Ok(())
 }
 
-fn write_status(
-    state: &FrontendState,
-    channels: &Channels,
-    config: &FrontendConfig,
-    files: &Files,
+/// Writes the status and resume files. A file that cannot be written once the service
+/// runs (a full disk) is logged, counted and survived: the odometry matters more than its
+/// status; the first status write, at start, fails the service instead (a run_dir that
+/// cannot be written is a configuration error, better found on the bench).
+struct Writer {
+    files: Files,
     start: Instant,
-) -> Result<Snapshot, ServiceError> {
-    let snapshot = state.snapshot();
-    files.write_status(&Status {
-        robot: &config.robot,
-        time_s: start.elapsed().as_secs_f64(),
-        calibration: config.calibration_origin.clone(),
-        undelivered: channels.undelivered(),
-        snapshot: snapshot.clone(),
-    })?;
-    doorslam_ipc::sd_notify(&format!(
-        "STATUS={}: {} frames, {} keyframes, lost {} times, {} segments",
-        snapshot.state, snapshot.frames, snapshot.keyframes, snapshot.lost, snapshot.segments
-    ));
-    Ok(snapshot)
+    failures: u64,
+}
+
+impl Writer {
+    fn outcome(&mut self, result: Result<(), ServiceError>) {
+        if let Err(e) = result {
+            self.failures += 1;
+            if power_of_ten(self.failures) {
+                tracing::error!(failures = self.failures, "frontend: {e}");
+            }
+        }
+    }
+
+    fn status(
+        &self,
+        state: &FrontendState,
+        channels: &Channels,
+        config: &FrontendConfig,
+    ) -> Result<Snapshot, ServiceError> {
+        let snapshot = state.snapshot();
+        self.files.write_status(&Status {
+            robot: &config.robot,
+            time_s: self.start.elapsed().as_secs_f64(),
+            calibration: config.calibration_origin.clone(),
+            undelivered: channels.undelivered(),
+            snapshot: snapshot.clone(),
+        })?;
+        doorslam_ipc::sd_notify(&format!(
+            "STATUS={}: {} frames, {} keyframes, lost {} times, {} segments",
+            snapshot.state, snapshot.frames, snapshot.keyframes, snapshot.lost, snapshot.segments
+        ));
+        Ok(snapshot)
+    }
 }
 
 /// Runs until SIGTERM/SIGINT; returns the final counters.
 pub fn run(config: &FrontendConfig) -> Result<Snapshot, ServiceError> {
     let files = Files::in_dir(&config.dir);
     let resume = files.read_resume()?;
+    let resume_path = files.resume.clone();
     if let Some(r) = &resume {
         tracing::info!(
             last_keyframe = r.keyframe,
-            file = %files.resume.display(),
+            file = %resume_path.display(),
             "frontend: resuming after the last keyframe a previous process published"
         );
     }
@@ -267,6 +288,12 @@ pub fn run(config: &FrontendConfig) -> Result<Snapshot, ServiceError> {
         keyframes: Sender::new(&node, &config.robot, Topic::Keyframes)?,
         odometry: Sender::new(&node, &config.robot, Topic::Odometry)?,
     };
+    let mut writer = Writer {
+        files,
+        start: Instant::now(),
+        failures: 0,
+    };
+    writer.status(&state, &channels, config)?;
     let mut lifecycle = Lifecycle::new();
     lifecycle.ready("waiting for frames");
     let c = &config.calibration;
@@ -278,13 +305,12 @@ pub fn run(config: &FrontendConfig) -> Result<Snapshot, ServiceError> {
         threads = config.vo.threads,
         "frontend: ready (subscribed to frames)"
     );
-    let start = Instant::now();
     let mut last_status = Instant::now();
     while lifecycle.keep_going(&node) {
         let c0 = thread_cpu_s();
         match channels.frames.recv_timeout(Duration::from_millis(100))? {
             Some(sample) => {
-                on_sample(&mut state, &channels, config, &files, sample.payload())?;
+                on_sample(&mut state, &channels, config, &mut writer, sample.payload())?;
                 drop(sample);
                 state.record_iteration_cpu((thread_cpu_s() - c0) * 1e3);
             }
@@ -292,7 +318,8 @@ pub fn run(config: &FrontendConfig) -> Result<Snapshot, ServiceError> {
             None => channels.catch_up()?,
         }
         if last_status.elapsed() >= Duration::from_secs(1) {
-            write_status(&state, &channels, config, &files, start)?;
+            let written = writer.status(&state, &channels, config).map(|_| ());
+            writer.outcome(written);
             last_status = Instant::now();
         }
     }
@@ -300,11 +327,13 @@ pub fn run(config: &FrontendConfig) -> Result<Snapshot, ServiceError> {
     // Frames already queued were sent before the stop (the camera stops first): process
     // them, so every keyframe they make reaches the back-end, which stops after us.
     while let Some(sample) = channels.frames.try_recv()? {
-        on_sample(&mut state, &channels, config, &files, sample.payload())?;
+        on_sample(&mut state, &channels, config, &mut writer, sample.payload())?;
     }
     // A consumer restarted since our last send has not been handed what it missed yet.
     channels.catch_up()?;
-    let snapshot = write_status(&state, &channels, config, &files, start)?;
+    let snapshot = state.snapshot();
+    let written = writer.status(&state, &channels, config).map(|_| ());
+    writer.outcome(written);
     let undelivered = channels.undelivered();
     if undelivered > 0 {
         tracing::warn!(

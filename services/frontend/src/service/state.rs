@@ -189,8 +189,11 @@ pub struct FrontendState {
 
 impl FrontendState {
     /// A front-end for frames of `calibration`'s size; `resume` is the last keyframe a
-    /// previous process published (ids continue after it, the first new keyframe is
-    /// linked to it).
+    /// previous process published: the first new keyframe is linked to it, and ids
+    /// continue one after the next, skipping one. A process that died between sending a
+    /// keyframe (or the edge to it) and recording it in its resume file may have handed the
+    /// back-end that id; reusing it would pair this process's keyframe with the dead one's
+    /// edge, or be skipped as a duplicate. The back-end logs the skipped id as a gap.
     pub fn new(
         calibration: Calibration,
         vo_config: VoConfig,
@@ -204,7 +207,7 @@ impl FrontendState {
             robot_index,
             vo,
             retired: VoStats::default(),
-            id_base: resume.map_or(0, |r| r.keyframe + 1),
+            id_base: resume.map_or(0, |r| r.keyframe + 2),
             world_from_vo: resume.map_or(SE3::identity(), |r| r.pose),
             link_pending: resume,
             last_keyframe: resume,
