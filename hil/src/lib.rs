@@ -37,6 +37,7 @@ mod noise;
 pub mod posegraph_sim;
 mod render;
 mod rng;
+pub mod sensor;
 pub mod sim_keyframes;
 mod texture;
 mod town;
@@ -46,7 +47,7 @@ pub use camera::{look_at, StereoCamera};
 pub use error::HilError;
 pub use geometry::{Aabb, Face, Ray, NEAR};
 pub use image::{DepthMap, GrayImage};
-pub use render::{render_stereo, render_view, StereoPair};
+pub use render::{render_radiance, render_stereo, render_view, StereoPair};
 pub use texture::{sky_intensity, FacadeStyle, GroundStyle, RoofStyle, Texture, TextureId};
 pub use town::{
     BUILDINGS, COPIES_PER_DESIGN, LOTS, REPEATED_DESIGNS, SIDEWALK_WIDTH, STREET_WIDTH, TOWN_SIZE,
