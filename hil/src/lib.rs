@@ -16,7 +16,11 @@
 //!   [`StereoCamera::kitti_like`]; poses are camera-to-world `Isometry3<f64>` of the
 //!   left camera, camera frame x right, y down, z forward; world frame z up.
 //! * [`render_stereo`]: ray casting (parallel over rows) into left/right 8-bit images and
-//!   the left camera's z-depth (`f32::INFINITY` on sky).
+//!   the left camera's z-depth (`f32::INFINITY` on sky): the ideal camera.
+//! * [`sensor`]: the realistic camera `doorslam sim world` uses by default: a global-shutter
+//!   CMOS pair with auto-exposure following changing light (a smooth walk and shade
+//!   steps), motion blur during the exposure, vignetting, shot and read noise;
+//!   [`flights::TeamCamera`] images a planned team with either camera.
 //!
 //! A surface point's intensity is a pure function of the point (its face's texture at
 //! its (u, v)), so it is the same from every viewpoint: [`World::texture_at`] gives it.
