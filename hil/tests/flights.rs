@@ -253,3 +253,22 @@ fn small_team_writes_a_replayable_folder() {
     assert!(err.to_string().contains("image_0"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn pose_at_runs_through_the_frames_smoothly() {
+    let world = World::town(SEED);
+    let config = FlightConfig::default();
+    for f in fly_team(&world, &config).unwrap() {
+        for (k, (&t, pose)) in f.times.iter().zip(&f.poses).enumerate() {
+            assert_eq!(f.pose_at(t), *pose, "frame {k}");
+            // Within an exposure (a few ms) the pose moves by speed × time, no jump.
+            let (a, b) = (f.pose_at(t - 0.005), f.pose_at(t + 0.005));
+            let step = (b.translation.vector - a.translation.vector).norm();
+            assert!(
+                step <= 0.01 * f.speed_mps * 1.01 + 1e-9,
+                "frame {k}: {step} m"
+            );
+            assert!(a.rotation.angle_to(&b.rotation) < 0.01, "frame {k}");
+        }
+    }
+}
