@@ -90,8 +90,116 @@ fn two_drone_world_round_trips_through_the_replay_reader() {
         "robots = 2",
         "frames = 20",
         "radio_range_m",
+        "camera = \"realistic\"",
+        "exposure_ms = ",
     ] {
         assert!(world.contains(key), "world.txt lacks {key}:\n{world}");
+    }
+    assert_eq!(summary["camera"], "realistic");
+    let exposures = std::fs::read_to_string(out.join("exposures.csv")).unwrap();
+    assert_eq!(exposures.lines().count(), 1 + 2 * 20);
+}
+
+/// Every image of a `sim world` output, by path relative to it.
+fn images(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut out = Vec::new();
+    for robot in ["a", "b"] {
+        for eye in ["image_0", "image_1"] {
+            let folder = dir.join(robot).join(eye);
+            let mut names: Vec<_> = std::fs::read_dir(&folder)
+                .unwrap()
+                .map(|e| e.unwrap().file_name().into_string().unwrap())
+                .collect();
+            names.sort();
+            for name in names {
+                let bytes = std::fs::read(folder.join(&name)).unwrap();
+                out.push((format!("{robot}/{eye}/{name}"), bytes));
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn camera_flags_choose_the_pixels_and_the_seed_fixes_them() {
+    let tmp = tempfile::tempdir().unwrap();
+    let world = |name: &str, extra: &[&str]| {
+        let out = tmp.path().join(name);
+        let mut args = vec![
+            "sim",
+            "world",
+            "--robots",
+            "2",
+            "--frames",
+            "5",
+            "--resolution",
+            "188x120",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let run = doorslam(&args);
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        out
+    };
+    let realistic = images(&world("r1", &[]));
+    assert_eq!(realistic.len(), 2 * 2 * 5);
+    assert_eq!(
+        realistic,
+        images(&world("r2", &[])),
+        "same seed, same bytes"
+    );
+    let ideal_dir = world("i", &["--camera", "ideal"]);
+    let ideal = images(&ideal_dir);
+    assert!(!ideal_dir.join("exposures.csv").exists());
+    let world_txt = std::fs::read_to_string(ideal_dir.join("world.txt")).unwrap();
+    assert!(world_txt.contains("camera = \"ideal\"") && !world_txt.contains("exposure_ms"));
+    let differ = realistic
+        .iter()
+        .zip(&ideal)
+        .filter(|(r, i)| r.1 != i.1)
+        .count();
+    assert_eq!(
+        differ,
+        realistic.len(),
+        "the realistic camera changes every image"
+    );
+    // Every effect off: the realistic pipeline's pixels are the ideal camera's, up to
+    // rounding from f32 instead of f64.
+    let off = world(
+        "off",
+        &[
+            "--noise-dn",
+            "0",
+            "--full-well-e",
+            "0",
+            "--exposure-walk",
+            "0",
+            "--shade-per-min",
+            "0",
+            "--blur",
+            "off",
+            "--vignetting",
+            "0",
+        ],
+    );
+    for robot in ["a", "b"] {
+        let (a, b) = (
+            Dataset::open(&off.join(robot)).unwrap(),
+            Dataset::open(&ideal_dir.join(robot)).unwrap(),
+        );
+        for k in 0..5 {
+            let (p, q) = (a.load(k).unwrap(), b.load(k).unwrap());
+            for (x, y) in [(&p.left, &q.left), (&p.right, &q.right)] {
+                let differ = x.iter().zip(y.iter()).filter(|(u, v)| u != v).count();
+                assert!(x.iter().zip(y.iter()).all(|(u, v)| u.abs_diff(*v) <= 1));
+                assert!(differ * 1000 < x.len(), "{differ} pixels differ");
+            }
+        }
     }
 }
 
@@ -129,4 +237,17 @@ fn bad_resolution_and_unwritable_out_are_named() {
     assert!(!run.status.success());
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert!(stderr.contains(below.to_str().unwrap()), "{stderr}");
+
+    // An exposure longer than a frame (10 Hz: 100 ms) is refused by name.
+    let run = doorslam(&[
+        "sim",
+        "world",
+        "--max-exposure-ms",
+        "150",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!run.status.success());
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(stderr.contains("max_exposure_ms = 150"), "{stderr}");
 }

@@ -12,6 +12,13 @@ pub enum HilError {
         value: f64,
         reason: &'static str,
     },
+    /// A realistic-camera setting is out of its valid range; names the field.
+    #[error("invalid camera model: {field} = {value} ({reason})")]
+    InvalidSensor {
+        field: &'static str,
+        value: f64,
+        reason: String,
+    },
     /// Two images that must share a size do not.
     #[error("image size mismatch: {left_width}x{left_height} vs {right_width}x{right_height}")]
     SizeMismatch {

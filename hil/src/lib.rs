@@ -16,7 +16,11 @@
 //!   [`StereoCamera::kitti_like`]; poses are camera-to-world `Isometry3<f64>` of the
 //!   left camera, camera frame x right, y down, z forward; world frame z up.
 //! * [`render_stereo`]: ray casting (parallel over rows) into left/right 8-bit images and
-//!   the left camera's z-depth (`f32::INFINITY` on sky).
+//!   the left camera's z-depth (`f32::INFINITY` on sky): the ideal camera.
+//! * [`sensor`]: the realistic camera `doorslam sim world` uses by default: a global-shutter
+//!   CMOS pair with auto-exposure following changing light (a smooth walk and shade
+//!   steps), motion blur during the exposure, vignetting, shot and read noise;
+//!   [`flights::TeamCamera`] images a planned team with either camera.
 //!
 //! A surface point's intensity is a pure function of the point (its face's texture at
 //! its (u, v)), so it is the same from every viewpoint: [`World::texture_at`] gives it.
@@ -39,6 +43,7 @@ mod noise;
 pub mod posegraph_sim;
 mod render;
 mod rng;
+pub mod sensor;
 pub mod sim_keyframes;
 mod texture;
 mod town;
@@ -48,7 +53,7 @@ pub use camera::{look_at, StereoCamera};
 pub use error::HilError;
 pub use geometry::{Aabb, Face, Ray, NEAR};
 pub use image::{DepthMap, GrayImage};
-pub use render::{render_stereo, render_view, StereoPair};
+pub use render::{render_radiance, render_stereo, render_view, StereoPair};
 pub use texture::{sky_intensity, FacadeStyle, GroundStyle, RoofStyle, Texture, TextureId};
 pub use town::{
     BUILDINGS, COPIES_PER_DESIGN, LOTS, REPEATED_DESIGNS, SIDEWALK_WIDTH, STREET_WIDTH, TOWN_SIZE,

@@ -42,19 +42,49 @@ pub fn render_view(
     camera: &StereoCamera,
     pose: &Isometry3<f64>,
 ) -> (GrayImage, DepthMap) {
+    let (pixels, depth) = render_rows(world, camera, pose, quantize);
+    (
+        GrayImage::from_parts_unchecked(camera.width(), camera.height(), pixels),
+        depth,
+    )
+}
+
+/// [`render_view`] before quantization: the scene radiance in intensity units (what an
+/// ideal camera exposed for the town reads, 0–255, unclamped and unrounded), row-major.
+/// The realistic camera ([`crate::sensor`]) exposes, blurs and digitizes this.
+pub fn render_radiance(
+    world: &World,
+    camera: &StereoCamera,
+    pose: &Isometry3<f64>,
+) -> (Vec<f32>, DepthMap) {
+    render_rows(world, camera, pose, |value| value as f32)
+}
+
+/// The ideal camera's 8-bit pixel of an intensity.
+fn quantize(value: f64) -> u8 {
+    (value.clamp(0.0, 255.0) + 0.5) as u8
+}
+
+/// Ray casts every row in parallel; `store` turns a pixel's intensity into the output type.
+fn render_rows<T: Copy + Default + Send>(
+    world: &World,
+    camera: &StereoCamera,
+    pose: &Isometry3<f64>,
+    store: impl Fn(f64) -> T + Sync,
+) -> (Vec<T>, DepthMap) {
     let (w, h) = (camera.width() as usize, camera.height() as usize);
     let view = View::new(world, camera, pose);
-    let mut pixels = vec![0u8; w * h];
+    let mut pixels = vec![T::default(); w * h];
     let mut depth = vec![0f32; w * h];
     pixels
         .par_chunks_mut(w)
         .zip(depth.par_chunks_mut(w))
         .enumerate()
         .for_each(|(row, (out, z))| {
-            view.render_row(row as u32, out, z);
+            view.render_row(row as u32, out, z, &store);
         });
     (
-        GrayImage::from_parts_unchecked(camera.width(), camera.height(), pixels),
+        pixels,
         DepthMap::from_parts_unchecked(camera.width(), camera.height(), depth),
     )
 }
@@ -89,7 +119,7 @@ impl<'a> View<'a> {
         }
     }
 
-    fn render_row(&self, row: u32, out: &mut [u8], depth: &mut [f32]) {
+    fn render_row<T>(&self, row: u32, out: &mut [T], depth: &mut [f32], store: &impl Fn(f64) -> T) {
         // Buildings whose rectangle spans this row, with their column range.
         let spans: Vec<(usize, u32, u32)> = self
             .rects
@@ -147,7 +177,7 @@ impl<'a> View<'a> {
                     sky_intensity(dir.z / dir.norm())
                 }
             };
-            *pixel = (value.clamp(0.0, 255.0) + 0.5) as u8;
+            *pixel = store(value);
         }
     }
 }

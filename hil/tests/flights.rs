@@ -8,6 +8,7 @@ use doorslam_hil::flights::{
     simulate_team, write_team, ClosureKind, Flight, FlightConfig, RangeEventKind, TeamFlight,
     OVERLAP_RADIUS_M,
 };
+use doorslam_hil::sensor::CameraModel;
 use doorslam_hil::{StereoCamera, World};
 use nalgebra::Vector3;
 
@@ -219,7 +220,7 @@ fn small_team_writes_a_replayable_folder() {
     let team = simulate_team(&world, &camera, &config).unwrap();
     let dir = std::env::temp_dir().join(format!("doorslam-flights-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    write_team(&dir, &world, &team, &|_, _| {}).unwrap();
+    write_team(&dir, &world, &team, &CameraModel::default(), &|_, _| {}).unwrap();
     for robot in ["a", "b"] {
         let d = doorslam_dataset::Dataset::open(&dir.join(robot)).unwrap();
         assert_eq!(d.len(), 4);
@@ -231,13 +232,43 @@ fn small_team_writes_a_replayable_folder() {
         assert!((c.cx - camera.cx()).abs() < 1e-6, "{c:?}");
         assert!((c.baseline_m - camera.baseline()).abs() < 1e-6, "{c:?}");
     }
+    // The realistic camera's settings and per-frame exposures are recorded.
+    let world_txt = std::fs::read_to_string(dir.join("world.txt")).unwrap();
+    for key in ["camera = \"realistic\"", "full_well_e = ", "blur = true"] {
+        assert!(
+            world_txt.contains(key),
+            "world.txt lacks {key}:\n{world_txt}"
+        );
+    }
+    let exposures = std::fs::read_to_string(dir.join("exposures.csv")).unwrap();
+    assert!(exposures.starts_with("robot,frame,time_s,exposure_ms,gain,light,brightness,shade\n"));
+    assert_eq!(exposures.lines().count(), 1 + 2 * 4, "{exposures}");
     // A shorter run into the same folder would leave frames behind: refused.
     let shorter = FlightConfig {
         frames: 2,
         ..config
     };
     let team = simulate_team(&world, &camera, &shorter).unwrap();
-    let err = write_team(&dir, &world, &team, &|_, _| {}).unwrap_err();
+    let err = write_team(&dir, &world, &team, &CameraModel::Ideal, &|_, _| {}).unwrap_err();
     assert!(err.to_string().contains("image_0"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn pose_at_runs_through_the_frames_smoothly() {
+    let world = World::town(SEED);
+    let config = FlightConfig::default();
+    for f in fly_team(&world, &config).unwrap() {
+        for (k, (&t, pose)) in f.times.iter().zip(&f.poses).enumerate() {
+            assert_eq!(f.pose_at(t), *pose, "frame {k}");
+            // Within an exposure (a few ms) the pose moves by speed × time, no jump.
+            let (a, b) = (f.pose_at(t - 0.005), f.pose_at(t + 0.005));
+            let step = (b.translation.vector - a.translation.vector).norm();
+            assert!(
+                step <= 0.01 * f.speed_mps * 1.01 + 1e-9,
+                "frame {k}: {step} m"
+            );
+            assert!(a.rotation.angle_to(&b.rotation) < 0.01, "frame {k}");
+        }
+    }
 }

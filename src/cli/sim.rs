@@ -6,6 +6,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand, ValueEnum};
 use doorslam_hil::experiments::pcm_sweep::{self, Cell, Method, SweepConfig, SweepReport};
 use doorslam_hil::posegraph_sim::{simulate, write_dataset, SimConfig};
+use doorslam_hil::sensor::{CameraModel, SensorModel};
 
 #[derive(Debug, Args)]
 pub struct SimArgs {
@@ -240,6 +241,86 @@ pub struct WorldArgs {
     /// Print one JSON object on stdout instead of a summary line.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub camera: CameraArgs,
+}
+
+/// The camera the world is imaged with (`doorslam_hil::sensor`). Defaults: an
+/// MT9V034-like global-shutter sensor in daylight with cloud and building shade.
+#[derive(Debug, Clone, Args)]
+pub struct CameraArgs {
+    /// `realistic`: sensor noise, auto-exposure following changing light, motion blur,
+    /// vignetting; `ideal`: the renderer's noise-free, perfectly exposed pixels.
+    #[arg(long, value_enum, default_value_t = CameraKind::Realistic)]
+    pub camera: CameraKind,
+    /// Read noise σ in 8-bit DN at unity gain (scaled by the gain); 0: none.
+    #[arg(long, default_value_t = SensorModel::default().read_noise_dn)]
+    pub noise_dn: f64,
+    /// Electrons filling the 8-bit range at unity gain (sets the shot noise); 0: none.
+    #[arg(long, default_value_t = SensorModel::default().full_well_e)]
+    pub full_well_e: f64,
+    /// Exposure time under the reference light (ms).
+    #[arg(long, default_value_t = SensorModel::default().exposure_ms)]
+    pub exposure_ms: f64,
+    /// Longest exposure before the auto-exposure raises the gain (ms, ≤ the frame period).
+    #[arg(long, default_value_t = SensorModel::default().max_exposure_ms)]
+    pub max_exposure_ms: f64,
+    /// Highest analog gain.
+    #[arg(long, default_value_t = SensorModel::default().max_gain)]
+    pub max_gain: f64,
+    /// σ of the smooth random walk of the light (natural log, 0.2 ≈ ±20 %); 0: none.
+    #[arg(long, default_value_t = SensorModel::default().exposure_walk)]
+    pub exposure_walk: f64,
+    /// Times per minute the drone flies into shade (a sudden step); 0: never.
+    #[arg(long, default_value_t = SensorModel::default().shade_per_min)]
+    pub shade_per_min: f64,
+    /// How much darker the shade is (stops).
+    #[arg(long, default_value_t = SensorModel::default().shade_stops)]
+    pub shade_stops: f64,
+    /// Time constant of the auto-exposure loop (s).
+    #[arg(long, default_value_t = SensorModel::default().ae_time_constant_s)]
+    pub ae_time_constant_s: f64,
+    /// Motion blur from the camera's motion during the exposure.
+    #[arg(long, value_enum, default_value_t = OnOff::On)]
+    pub blur: OnOff,
+    /// Fraction of light lost in the farthest image corner; 0: none.
+    #[arg(long, default_value_t = SensorModel::default().vignetting)]
+    pub vignetting: f64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum CameraKind {
+    Realistic,
+    Ideal,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum OnOff {
+    On,
+    Off,
+}
+
+impl CameraArgs {
+    /// The model these flags describe (checked against the frame rate when used).
+    pub fn model(&self) -> CameraModel {
+        match self.camera {
+            CameraKind::Ideal => CameraModel::Ideal,
+            CameraKind::Realistic => CameraModel::Realistic(SensorModel {
+                full_well_e: self.full_well_e,
+                read_noise_dn: self.noise_dn,
+                exposure_ms: self.exposure_ms,
+                max_exposure_ms: self.max_exposure_ms,
+                max_gain: self.max_gain,
+                exposure_walk: self.exposure_walk,
+                shade_per_min: self.shade_per_min,
+                shade_stops: self.shade_stops,
+                ae_time_constant_s: self.ae_time_constant_s,
+                blur: self.blur == OnOff::On,
+                vignetting: self.vignetting,
+                ..SensorModel::default()
+            }),
+        }
+    }
 }
 
 /// `sim world`: plans the team, then renders and writes every robot's sequence.
@@ -249,6 +330,12 @@ fn run_world(a: WorldArgs) -> Result<()> {
     };
 
     let camera = camera_for_resolution(&a.resolution).context("--resolution")?;
+    let model = a.camera.model();
+    if let CameraModel::Realistic(sensor) = &model {
+        sensor
+            .validate(a.rate_hz)
+            .context("camera options (--noise-dn, --exposure-ms, ...)")?;
+    }
     let config = FlightConfig {
         robots: a.robots,
         frames: a.frames,
@@ -276,7 +363,7 @@ fn run_world(a: WorldArgs) -> Result<()> {
             );
         }
     };
-    write_team(&a.out, &world, &team, &progress)
+    write_team(&a.out, &world, &team, &model, &progress)
         .with_context(|| format!("writing the world into {}", a.out.display()))?;
     let seconds = start.elapsed().as_secs_f64();
     if a.json {
@@ -285,6 +372,7 @@ fn run_world(a: WorldArgs) -> Result<()> {
             "robots": a.robots,
             "frames": a.frames,
             "resolution": format!("{}x{}", camera.width(), camera.height()),
+            "camera": model.name(),
             "overlap_candidates": overlaps,
             "aliased_candidates": aliased,
             "rendezvous_events": team.events.len(),
@@ -293,12 +381,13 @@ fn run_world(a: WorldArgs) -> Result<()> {
         println!("{json}");
     } else {
         println!(
-            "{}: {} robots x {} frames at {}x{} in {seconds:.1} s; {overlaps} overlap and {aliased} aliased closure candidates, {} rendezvous events",
+            "{}: {} robots x {} frames at {}x{} ({} camera) in {seconds:.1} s; {overlaps} overlap and {aliased} aliased closure candidates, {} rendezvous events",
             a.out.display(),
             a.robots,
             a.frames,
             camera.width(),
             camera.height(),
+            model.name(),
             team.events.len()
         );
     }

@@ -15,6 +15,7 @@
 //! of the world and [`FlightConfig`].
 
 mod closures;
+mod imaging;
 mod output;
 mod plan;
 mod rendezvous;
@@ -33,6 +34,7 @@ pub use closures::{
     closure_candidates, repeated_designs, seen_buildings, ClosureCandidate, ClosureKind,
     OVERLAP_MAX_ANGLE_DEG, OVERLAP_RADIUS_M, SEEN_FRACTION, SEEN_MAX_DEPTH_M,
 };
+pub use imaging::TeamCamera;
 pub use output::{robot_name, write_team, Progress};
 pub use plan::FOLLOWER_LEAD_M;
 pub use rendezvous::{rendezvous_events, RangeEvent, RangeEventKind};
@@ -219,6 +221,40 @@ pub struct Flight {
     pub times: Vec<f64>,
     /// Left-camera poses, camera-to-world, one per frame.
     pub poses: Vec<Isometry3<f64>>,
+    /// The continuous trajectory the frames sample (motion blur needs the pose during
+    /// the exposure, between frames).
+    trajectory: Trajectory,
+}
+
+impl Flight {
+    /// Left-camera pose at any time `t` (seconds), on the same smooth trajectory as
+    /// [`Flight::poses`] (`pose_at(times[k]) == poses[k]`). Before the first frame and
+    /// after the route's end the drone hovers where the route begins or ends.
+    pub fn pose_at(&self, t: f64) -> Isometry3<f64> {
+        self.trajectory.pose_at(t)
+    }
+}
+
+/// A route flown at constant speed with the camera pitched down: pose as a function of time.
+#[derive(Debug, Clone, PartialEq)]
+struct Trajectory {
+    route: plan::Route,
+    pitch: f64,
+}
+
+impl Trajectory {
+    fn pose_at(&self, t: f64) -> Isometry3<f64> {
+        let route = &self.route;
+        let s = route.start_s + route.speed * t;
+        let (p, yaw) = route
+            .path
+            .sample(s)
+            .unwrap_or((nalgebra::Point2::origin(), 0.0));
+        // The path clamps s to its length; the altitude must follow the same clamp.
+        let s = s.clamp(0.0, route.path.length());
+        let eye = nalgebra::Point3::new(p.x, p.y, route.altitude.at(s));
+        heading_pose(eye, yaw, self.pitch)
+    }
 }
 
 /// A planned team: flights, radio events and closure candidates.
@@ -261,23 +297,14 @@ pub fn fly_team(world: &World, config: &FlightConfig) -> Result<Vec<Flight>, Fli
         .into_iter()
         .map(|route| {
             let times: Vec<f64> = (0..config.frames).map(|k| config.time_of(k)).collect();
-            let poses = times
-                .iter()
-                .map(|&t| {
-                    let s = route.start_s + route.speed * t;
-                    let (p, yaw) = route
-                        .path
-                        .sample(s)
-                        .unwrap_or((nalgebra::Point2::origin(), 0.0));
-                    let eye = nalgebra::Point3::new(p.x, p.y, route.altitude.at(s));
-                    heading_pose(eye, yaw, pitch)
-                })
-                .collect();
+            let trajectory = Trajectory { route, pitch };
+            let poses = times.iter().map(|&t| trajectory.pose_at(t)).collect();
             Flight {
-                role: route.role,
-                speed_mps: route.speed,
+                role: trajectory.route.role,
+                speed_mps: trajectory.route.speed,
                 times,
                 poses,
+                trajectory,
             }
         })
         .collect();

@@ -2,9 +2,12 @@
 //! events, closure candidates and a description of the world.
 //!
 //! ```text
-//! <dir>/world.txt       seed, resolution, intrinsics, baseline, radio range, robots, frames
+//! <dir>/world.txt       seed, resolution, intrinsics, baseline, radio range, robots, frames,
+//!                       camera model and its settings
 //! <dir>/events.csv      time_s,event,robot_a,robot_b        (enter / leave)
 //! <dir>/closures.csv    robot_a,frame_a,robot_b,frame_b,kind (overlap / aliased)
+//! <dir>/exposures.csv   robot,frame,time_s,exposure_ms,gain,light,brightness,shade
+//!                       (realistic camera only: what the auto-exposure did per frame)
 //! <dir>/<r>/image_0/NNNNNN.png, image_1/NNNNNN.png, times.txt, calib.txt,
 //!           poses.txt (KITTI, left camera-to-world), groundtruth.tum (t x y z qx qy qz qw)
 //! ```
@@ -18,9 +21,10 @@ use nalgebra::Isometry3;
 use rayon::prelude::*;
 
 use crate::image::GrayImage;
-use crate::render::render_stereo;
+use crate::sensor::CameraModel;
 use crate::world::World;
 
+use super::imaging::TeamCamera;
 use super::{ClosureKind, FlightError, TeamFlight};
 
 /// Called after each rendered frame with (frames done, frames in total), from any thread.
@@ -90,7 +94,7 @@ fn check_no_stale_frames(dir: &Path, frames: usize) -> Result<(), FlightError> {
     Ok(())
 }
 
-fn world_description(world: &World, team: &TeamFlight) -> String {
+fn world_description(world: &World, team: &TeamFlight, model: &CameraModel) -> String {
     let (c, cfg) = (&team.camera, &team.config);
     let mut s =
         String::from("# doorslam sim world: synthetic stereo town, one KITTI sequence per robot\n");
@@ -117,6 +121,12 @@ fn world_description(world: &World, team: &TeamFlight) -> String {
     ];
     for line in lines {
         let _ = writeln!(s, "{line}");
+    }
+    let _ = writeln!(s, "camera = \"{}\"", model.name());
+    if let CameraModel::Realistic(sensor) = model {
+        for line in sensor.describe() {
+            let _ = writeln!(s, "{line}");
+        }
     }
     for (r, f) in team.flights.iter().enumerate() {
         let _ = writeln!(
@@ -156,14 +166,16 @@ fn calibration(team: &TeamFlight) -> String {
     format!("P0: {}\nP1: {}\n", p(0.0), p(-c.fx() * c.baseline()))
 }
 
-/// Writes everything (see the module docs) into `dir`, creating folders as needed.
-/// Frames render in parallel; `progress` hears about each one.
+/// Writes everything (see the module docs) into `dir`, creating folders as needed, the
+/// images through `model`. Frames render in parallel; `progress` hears about each one.
 pub fn write_team(
     dir: &Path,
     world: &World,
     team: &TeamFlight,
+    model: &CameraModel,
     progress: Progress<'_>,
 ) -> Result<(), FlightError> {
+    let camera = TeamCamera::new(world, team, *model)?;
     create_dir(dir)?;
     let frames = team.config.frames;
     for (r, flight) in team.flights.iter().enumerate() {
@@ -211,7 +223,17 @@ pub fn write_team(
         );
     }
     write_text(dir.join("closures.csv"), &closures)?;
-    write_text(dir.join("world.txt"), &world_description(world, team))?;
+    write_text(
+        dir.join("world.txt"),
+        &world_description(world, team, model),
+    )?;
+    let exposures_csv = dir.join("exposures.csv");
+    if matches!(model, CameraModel::Realistic(_)) {
+        write_text(exposures_csv, &exposures(team, &camera))?;
+    } else if exposures_csv.exists() {
+        // An earlier realistic run's exposures would describe other images.
+        std::fs::remove_file(&exposures_csv).map_err(io_error(&exposures_csv))?;
+    }
 
     let jobs: Vec<(usize, usize)> = team
         .flights
@@ -221,16 +243,37 @@ pub fn write_team(
         .collect();
     let done = AtomicUsize::new(0);
     jobs.par_iter().try_for_each(|&(r, k)| {
-        let Some(pose) = team.flights.get(r).and_then(|f| f.poses.get(k)) else {
+        let Some(pair) = camera.render(r, k)? else {
             return Ok(());
         };
-        let pair = render_stereo(world, &team.camera, pose);
         let root = dir.join(robot_name(r).to_string());
         write_png(&root.join("image_0").join(frame_file(k)), &pair.left)?;
         write_png(&root.join("image_1").join(frame_file(k)), &pair.right)?;
         progress(done.fetch_add(1, Ordering::Relaxed) + 1, jobs.len());
         Ok(())
     })
+}
+
+/// `exposures.csv`: the realistic camera's exposure of every frame.
+fn exposures(team: &TeamFlight, camera: &TeamCamera<'_>) -> String {
+    let mut s = String::from("robot,frame,time_s,exposure_ms,gain,light,brightness,shade\n");
+    for (r, flight) in team.flights.iter().enumerate() {
+        for (k, t) in flight.times.iter().enumerate() {
+            if let Some(e) = camera.exposure(r, k) {
+                let _ = writeln!(
+                    s,
+                    "{},{k},{t:.6},{:.4},{:.4},{:.5},{:.5},{}",
+                    robot_name(r),
+                    e.exposure_s * 1e3,
+                    e.gain,
+                    e.light,
+                    e.brightness,
+                    u8::from(e.shade)
+                );
+            }
+        }
+    }
+    s
 }
 
 /// 8-bit grayscale PNG with fast compression: rendering, not zlib, should dominate.
