@@ -11,6 +11,12 @@ use clap::Args;
 use doorslam_hil::demo::{self, DemoConfig, Kill, Phase, Snapshot};
 use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum CameraArg {
+    Realistic,
+    Ideal,
+}
+
 #[derive(Debug, Args)]
 pub struct DemoArgs {
     /// Robots in the team.
@@ -37,6 +43,10 @@ pub struct DemoArgs {
     /// Seed of the town and the flights.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// The simulated camera: `realistic` (sensor noise, exposure changes, motion blur) or
+    /// `ideal` (noise-free, perfectly exposed renders).
+    #[arg(long, value_enum, default_value_t = CameraArg::Realistic)]
+    pub camera: CameraArg,
     /// Most seconds to wait at base, after the flight, for the team estimate to settle.
     #[arg(long, default_value_t = 30.0)]
     pub settle_s: f64,
@@ -92,6 +102,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
     config.rate = args.rate;
     config.seed = args.seed;
     config.settle_s = args.settle_s;
+    config.realistic_camera = args.camera == CameraArg::Realistic;
 
     let tty = std::io::stderr().is_terminal();
     let multi = MultiProgress::new();

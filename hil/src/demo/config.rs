@@ -205,6 +205,13 @@ impl World {
         };
         let world = crate::World::town(config.seed);
         let team = simulate_team(&world, &camera, &flight)?;
+        // Sensor noise, exposure changes and motion blur (hil's realistic camera) unless
+        // the ideal pinhole is asked for.
+        let camera_model = if config.realistic_camera {
+            crate::sensor::CameraModel::default()
+        } else {
+            crate::sensor::CameraModel::Ideal
+        };
         // Rendering runs on rayon's threads: they count, this thread reports.
         let done = std::sync::atomic::AtomicUsize::new(0);
         let total = config.robots * config.frames;
@@ -212,7 +219,7 @@ impl World {
             done.fetch_max(d, std::sync::atomic::Ordering::Relaxed);
         };
         std::thread::scope(|s| {
-            let worker = s.spawn(|| write_team(&dir, &world, &team, &count));
+            let worker = s.spawn(|| write_team(&dir, &world, &team, &camera_model, &count));
             while !worker.is_finished() {
                 progress(done.load(std::sync::atomic::Ordering::Relaxed), total);
                 std::thread::sleep(std::time::Duration::from_millis(200));
