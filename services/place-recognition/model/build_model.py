@@ -362,7 +362,9 @@ def training_images(repo, cache, doorslam):
             log(f"rendering training town seed {seed} into {out}")
             subprocess.run([str(doorslam), "sim", "world", "--robots", str(TRAIN_ROBOTS),
                             "--frames", str(TRAIN_FRAMES), "--seed", str(seed), "--out", str(out),
-                            "--json"], check=True, stdout=subprocess.DEVNULL)
+                            # The recorded model and vocabulary (model/README.md hashes) were
+                            # trained on the ideal camera's towns: same pixels, same bytes.
+                            "--camera", "ideal", "--json"], check=True, stdout=subprocess.DEVNULL)
             (out / "done").write_text("ok\n")
         paths += sorted(out.glob("*/image_0/*.png"))[::2]
     stereo = shared_stereo(repo)
@@ -440,8 +442,8 @@ def select(p, images, doorslam, cache, what):
     out = cache / "val-town-201-5x150"
     if not (out / "done").exists():
         subprocess.run([str(doorslam), "sim", "world", "--robots", "5", "--frames", "150",
-                        "--seed", "201", "--out", str(out), "--json"], check=True,
-                       stdout=subprocess.DEVNULL)
+                        "--seed", "201", "--out", str(out), "--camera", "ideal", "--json"],
+                       check=True, stdout=subprocess.DEVNULL)
         (out / "done").write_text("ok\n")
     frames = sorted(out.glob("*/image_0/*.png"))
     keys = [(f.parent.parent.name, int(f.stem)) for f in frames]
