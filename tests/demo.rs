@@ -22,7 +22,17 @@ fn demo(out: &Path, extra: &[&str]) -> Value {
         "this test needs root: every robot of the demo is a network namespace (run the tests as root, as CI does)"
     );
     let run = Command::new(env!("CARGO_BIN_EXE_doorslam"))
-        .args(["demo", "--robots", "2", "--frames", "150", "--settle-s", "40", "--json", "--out"])
+        .args([
+            "demo",
+            "--robots",
+            "2",
+            "--frames",
+            "150",
+            "--settle-s",
+            "40",
+            "--json",
+            "--out",
+        ])
         .arg(out)
         .args(extra)
         .env("RUST_LOG", "info,zenoh=warn")
@@ -37,8 +47,18 @@ fn demo(out: &Path, extra: &[&str]) -> Value {
         logs("b")
     );
     let summary: Value = serde_json::from_slice(&run.stdout).expect("summary on stdout");
-    for file in ["report.md", "summary.json", "trajectories.png", "trajectories.svg", "error.png", "bytes.svg"] {
-        assert!(out.join(file).is_file(), "{file} missing from the report folder");
+    for file in [
+        "report.md",
+        "summary.json",
+        "trajectories.png",
+        "trajectories.svg",
+        "error.png",
+        "bytes.svg",
+    ] {
+        assert!(
+            out.join(file).is_file(),
+            "{file} missing from the report folder"
+        );
     }
     summary
 }
@@ -48,10 +68,12 @@ fn demo(out: &Path, extra: &[&str]) -> Value {
 /// again while its ledger continues).
 fn ledgers_match_published(out: &Path, robots: &[&str]) {
     for &r in robots {
-        let status: Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join(r).join("status.json")).unwrap())
-                .unwrap();
-        let ledger = doorslam_team::ledger::LedgerFile::read(&out.join(r).join("ledger.json")).unwrap();
+        let status: Value = serde_json::from_str(
+            &std::fs::read_to_string(out.join(r).join("status.json")).unwrap(),
+        )
+        .unwrap();
+        let ledger =
+            doorslam_team::ledger::LedgerFile::read(&out.join(r).join("ledger.json")).unwrap();
         let sent: u64 = ledger
             .traffic
             .iter()
@@ -80,7 +102,10 @@ fn two_robots_build_one_map() {
         assert!(ate < ATE_BOUND_M, "{r}: ATE in the team frame {ate} m: {x}");
     }
     let c = &s["closures"];
-    assert!(c["true_accepted"].as_u64().unwrap() > 0, "no true closure kept: {c}");
+    assert!(
+        c["true_accepted"].as_u64().unwrap() > 0,
+        "no true closure kept: {c}"
+    );
     assert_eq!(c["false_accepted"], 0, "a false closure survived PCM: {c}");
     ledgers_match_published(&out, &["a", "b"]);
     // The report folder is what `doorslam bw --json` reads.
@@ -106,17 +131,27 @@ fn a_killed_robot_restarts_and_rejoins() {
         .map(|e| e["event"].as_str().unwrap_or("").to_string())
         .collect();
     assert!(events.iter().any(|e| e.starts_with("killed")), "{events:?}");
-    assert!(events.iter().any(|e| e.starts_with("restarted")), "{events:?}");
+    assert!(
+        events.iter().any(|e| e.starts_with("restarted")),
+        "{events:?}"
+    );
     assert_eq!(s["per_robot"]["b"]["starts"], 2);
     // The restarted robot recovered its journal and is back in the team's frame.
     let backend: Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("b/backend.json")).unwrap()).unwrap();
-    assert!(backend["report"]["recovered_keyframes"].as_u64().unwrap() > 0, "{backend}");
+        serde_json::from_str(&std::fs::read_to_string(out.join("b/backend.json")).unwrap())
+            .unwrap();
+    assert!(
+        backend["report"]["recovered_keyframes"].as_u64().unwrap() > 0,
+        "{backend}"
+    );
     for r in ["a", "b"] {
         let x = &s["per_robot"][r];
         assert_eq!(x["anchored"], true, "{r}: {x}");
         let ate = x["ate_team_frame_m"].as_f64().unwrap_or(f64::INFINITY);
-        assert!(ate < ATE_BOUND_M, "{r}: ATE in the team frame {ate} m after the kill: {x}");
+        assert!(
+            ate < ATE_BOUND_M,
+            "{r}: ATE in the team frame {ate} m after the kill: {x}"
+        );
     }
     assert_eq!(s["closures"]["false_accepted"], 0);
     ledgers_match_published(&out, &["a"]);

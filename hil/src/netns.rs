@@ -97,9 +97,7 @@ impl Net {
             sh(&["ip", "-n", &ns, "link", "set", &veth, "up"])?;
             sh(&["ip", "-n", &ns, "link", "set", "lo", "up"])?;
             // Multicast scouting (peers found without a list) leaves by the radio.
-            sh(&[
-                "ip", "-n", &ns, "route", "add", "224.0.0.0/4", "dev", &veth,
-            ])?;
+            sh(&["ip", "-n", &ns, "route", "add", "224.0.0.0/4", "dev", &veth])?;
         }
         Ok(net)
     }

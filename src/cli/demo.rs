@@ -76,10 +76,15 @@ fn robot_line(r: &demo::RobotSnapshot) -> String {
 
 fn header(s: &Snapshot) -> String {
     match s.phase {
-        Phase::Rendering => format!("rendering the flights: {}/{} stereo frames", s.rendered.0, s.rendered.1),
+        Phase::Rendering => format!(
+            "rendering the flights: {}/{} stereo frames",
+            s.rendered.0, s.rendered.1
+        ),
         Phase::Starting => "starting the robots".into(),
         Phase::Flying => format!("flying: {:5.1} / {:.1} s", s.flight_s, s.flight_total_s),
-        Phase::AtBase => "back at base: every robot in range, waiting for the team estimate to settle".into(),
+        Phase::AtBase => {
+            "back at base: every robot in range, waiting for the team estimate to settle".into()
+        }
         Phase::Stopping => "stopping the robots".into(),
         Phase::Reporting => "writing the report".into(),
     }
@@ -106,8 +111,13 @@ pub fn run(args: DemoArgs) -> Result<()> {
 
     let tty = std::io::stderr().is_terminal();
     let multi = MultiProgress::new();
-    let style = ProgressStyle::with_template("{prefix:>3} {msg}").unwrap_or(ProgressStyle::default_bar());
-    let top = multi.add(ProgressBar::new_spinner().with_style(style.clone()).with_prefix(""));
+    let style =
+        ProgressStyle::with_template("{prefix:>3} {msg}").unwrap_or(ProgressStyle::default_bar());
+    let top = multi.add(
+        ProgressBar::new_spinner()
+            .with_style(style.clone())
+            .with_prefix(""),
+    );
     let mut lines: Vec<ProgressBar> = Vec::new();
     let mut last_print = Instant::now() - Duration::from_secs(60);
     let mut progress = |s: &Snapshot| {
@@ -122,11 +132,13 @@ pub fn run(args: DemoArgs) -> Result<()> {
             top.set_message(header(s));
             while lines.len() < s.robots.len() {
                 let r = &s.robots[lines.len()];
-                lines.push(multi.add(
-                    ProgressBar::new_spinner()
-                        .with_style(style.clone())
-                        .with_prefix(r.name.to_string()),
-                ));
+                lines.push(
+                    multi.add(
+                        ProgressBar::new_spinner()
+                            .with_style(style.clone())
+                            .with_prefix(r.name.to_string()),
+                    ),
+                );
             }
             for (bar, r) in lines.iter().zip(&s.robots) {
                 bar.set_message(robot_line(r));
@@ -139,7 +151,11 @@ pub fn run(args: DemoArgs) -> Result<()> {
             }
         }
     };
-    eprintln!("doorslam demo: {} robots, report in {}", args.robots, out.display());
+    eprintln!(
+        "doorslam demo: {} robots, report in {}",
+        args.robots,
+        out.display()
+    );
     let summary = demo::run(&config, &mut progress)
         .with_context(|| format!("demo (report folder {})", out.display()))?;
     top.finish_and_clear();

@@ -6,10 +6,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result};
 use clap::Args;
 use doorslam_backend::outliers::{Pcm, Scope};
-use doorslam_backend::{
-    key, write_g2o, EdgeClass, Graph, PoseGraph, ReadOptions,
-    UnknownTags,
-};
+use doorslam_backend::{key, write_g2o, EdgeClass, Graph, PoseGraph, ReadOptions, UnknownTags};
 use nalgebra::Isometry3;
 
 use super::pgo::InformationArg;

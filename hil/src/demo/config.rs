@@ -126,7 +126,10 @@ impl DemoConfig {
             return bad("rate = 0: the demo replays on a clock (use a positive speed)".into());
         }
         if !self.exe.is_file() {
-            return bad(format!("{}: the doorslam binary is not there", self.exe.display()));
+            return bad(format!(
+                "{}: the doorslam binary is not there",
+                self.exe.display()
+            ));
         }
         Ok(())
     }
@@ -224,12 +227,12 @@ impl World {
                 progress(done.load(std::sync::atomic::Ordering::Relaxed), total);
                 std::thread::sleep(std::time::Duration::from_millis(200));
             }
-            worker
-                .join()
-                .unwrap_or_else(|_| Err(crate::flights::FlightError::Io {
+            worker.join().unwrap_or_else(|_| {
+                Err(crate::flights::FlightError::Io {
                     path: dir.clone(),
                     source: std::io::Error::other("the rendering thread panicked"),
-                }))
+                })
+            })
         })?;
         progress(total, total);
         let n = config.robots;
@@ -268,7 +271,9 @@ impl World {
             .map(|k| (k + 1) * frames / robots - k * frames / robots)
             .collect();
         Ok(World {
-            sources: (0..robots).map(|r| (dir.to_path_buf(), Some([r, robots]))).collect(),
+            sources: (0..robots)
+                .map(|r| (dir.to_path_buf(), Some([r, robots])))
+                .collect(),
             truth: vec![truth; robots],
             events: Vec::new(),
             closures_csv: None,
@@ -296,7 +301,11 @@ fn ground_truth(dir: &Path) -> Result<Trajectory, DemoError> {
         .and_then(|d| d.with_truth(&poses))
         .map_err(|e| fail(e.to_string()))?;
     let truth = dataset.truth.clone().unwrap_or_default();
-    let stamps = dataset.frames.iter().map(|f| f.stamp_ns as f64 * 1e-9).collect();
+    let stamps = dataset
+        .frames
+        .iter()
+        .map(|f| f.stamp_ns as f64 * 1e-9)
+        .collect();
     Trajectory::new(stamps, truth).map_err(|e| fail(e.to_string()))
 }
 

@@ -33,7 +33,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use crate::flights::{FlightError, RangeEventKind};
-use crate::netns::{NetError, Net};
+use crate::netns::{Net, NetError};
 
 pub use config::{DemoConfig, Kill};
 pub use robot::{RobotSnapshot, RobotState};
@@ -200,9 +200,8 @@ pub fn run(
     let flight_total_s = world.duration_s();
     snap.flight_total_s = flight_total_s;
     let clock_start = Instant::now() + Duration::from_secs_f64(config.startup_s);
-    let flight_time = |now: Instant| {
-        now.saturating_duration_since(clock_start).as_secs_f64() * config.rate
-    };
+    let flight_time =
+        |now: Instant| now.saturating_duration_since(clock_start).as_secs_f64() * config.rate;
     let mut events = world.events.iter().peekable();
     let mut killed_at: Option<Instant> = None;
     let mut restarted = false;
@@ -233,7 +232,12 @@ pub fn run(
                 event: what.into(),
                 robots: vec![letter(a).to_string(), letter(b).to_string()],
             });
-            snap.note = Some(format!("{:5.1} s  {} and {} {what}", e.time_s, letter(a), letter(b)));
+            snap.note = Some(format!(
+                "{:5.1} s  {} and {} {what}",
+                e.time_s,
+                letter(a),
+                letter(b)
+            ));
         }
         if let Some(k) = &config.kill {
             if killed_at.is_none() && !restarted && ft >= k.at_s {

@@ -82,7 +82,9 @@ fn range(lines: &Lines, axis: impl Fn(&(f64, f64)) -> f64) -> (f64, f64) {
     let (lo, hi) = lines
         .iter()
         .flat_map(|l| l.3.iter().map(&axis))
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(v), b.max(v)));
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+            (a.min(v), b.max(v))
+        });
     if lo.is_finite() && hi > lo {
         let pad = (hi - lo) * 0.05;
         (lo - pad, hi + pad)
@@ -105,8 +107,14 @@ where
         let (w, h) = root.dim_in_pixel();
         let scale = ((x1 - x0) / f64::from(w)).max((y1 - y0) / f64::from(h));
         let (cx, cy) = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
-        (x0, x1) = (cx - scale * f64::from(w) / 2.0, cx + scale * f64::from(w) / 2.0);
-        (y0, y1) = (cy - scale * f64::from(h) / 2.0, cy + scale * f64::from(h) / 2.0);
+        (x0, x1) = (
+            cx - scale * f64::from(w) / 2.0,
+            cx + scale * f64::from(w) / 2.0,
+        );
+        (y0, y1) = (
+            cy - scale * f64::from(h) / 2.0,
+            cy + scale * f64::from(h) / 2.0,
+        );
     }
     let mut chart = ChartBuilder::on(&root)
         .caption(&p.title, ("sans-serif", 22))
@@ -181,7 +189,12 @@ pub fn draw(
     for (r, gt) in truth.iter().enumerate() {
         if let Some(gt) = gt {
             let pts = gt.positions().iter().map(|p| (p.x, p.y)).collect();
-            lines.push((format!("{} truth", robot_name(r)), light(colour(r)), true, pts));
+            lines.push((
+                format!("{} truth", robot_name(r)),
+                light(colour(r)),
+                true,
+                pts,
+            ));
         }
     }
     let (mut src, mut dst) = (Vec::new(), Vec::new());
@@ -199,7 +212,12 @@ pub fn draw(
                     (q.x, q.y)
                 })
                 .collect();
-            lines.push((format!("{} team estimate", robot_name(r)), colour(r), false, pts));
+            lines.push((
+                format!("{} team estimate", robot_name(r)),
+                colour(r),
+                false,
+                pts,
+            ));
         }
     }
     files.extend(save(

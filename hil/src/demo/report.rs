@@ -238,9 +238,8 @@ fn centralized(files: &[PathBuf], threshold: f64, min_clique: usize) -> Option<P
         .flat_map(|&(a, b)| [(a, b), (b, a)])
         .collect();
     let keys = graph.keys().to_vec();
-    let inter = |e: &doorslam_backend::BetweenFactor<SE3>| {
-        key::robot(keys[e.i]) != key::robot(keys[e.j])
-    };
+    let inter =
+        |e: &doorslam_backend::BetweenFactor<SE3>| key::robot(keys[e.i]) != key::robot(keys[e.j]);
     let mut filtered = graph.clone();
     filtered.retain_edges(|e| !inter(e) || keep.contains(&(keys[e.i], keys[e.j])));
     // The component of the first pose of the lowest robot.
@@ -297,7 +296,9 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
     for r in 0..n {
         let st = status(r);
         let get = |p: &str| st.as_ref().and_then(|s| s.pointer(p)).cloned();
-        let anchored = get("/team/anchored").and_then(|v| v.as_bool()).unwrap_or(false);
+        let anchored = get("/team/anchored")
+            .and_then(|v| v.as_bool())
+            .unwrap_or(false);
         let anchor = get("/team/anchor")
             .and_then(|v| v.as_str().map(String::from))
             .unwrap_or_default();
@@ -313,22 +314,31 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
             anchors.insert(r, anchor.clone());
             team_pairs.insert(r, pairs.clone());
         }
-        let frontend: Option<serde_json::Value> = std::fs::read_to_string(dir(r).join("frontend.json"))
-            .ok()
-            .and_then(|t| serde_json::from_str(&t).ok());
+        let frontend: Option<serde_json::Value> =
+            std::fs::read_to_string(dir(r).join("frontend.json"))
+                .ok()
+                .and_then(|t| serde_json::from_str(&t).ok());
         per_robot.insert(
             letters[r].clone(),
             RobotSummary {
                 keyframes: get("/keyframes").and_then(|v| v.as_u64()).unwrap_or(0) as usize,
-                frames: frontend.as_ref().and_then(|f| f.get("frames")).and_then(|v| v.as_u64()),
-                lost: frontend.as_ref().and_then(|f| f.get("lost")).and_then(|v| v.as_u64()),
+                frames: frontend
+                    .as_ref()
+                    .and_then(|f| f.get("frames"))
+                    .and_then(|v| v.as_u64()),
+                lost: frontend
+                    .as_ref()
+                    .and_then(|f| f.get("lost"))
+                    .and_then(|v| v.as_u64()),
                 ate_vo_m: vo.map(|v| v.0),
                 ate_team_m: team.map(|v| v.0),
                 ate_team_frame_m: None,
                 ate_centralized_m: None,
                 anchored,
                 anchor,
-                converged: get("/team/converged").and_then(|v| v.as_bool()).unwrap_or(false),
+                converged: get("/team/converged")
+                    .and_then(|v| v.as_bool())
+                    .unwrap_or(false),
                 bytes_sent: super::robot::ledger_bytes_sent(&dir(r).join("ledger.json")),
                 starts: log.starts.get(r).copied().unwrap_or(0),
             },
@@ -364,11 +374,13 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
         .map(|r| dir(r).join("graph.g2o"))
         .filter(|p| p.is_file())
         .collect();
-    let oracle = centralized(&graphs, 0.99, 2);
+    // The robots run the back-end's default PCM settings (the demo writes no others).
+    let pcm = doorslam_backend::service::BackendSection::default();
+    let oracle = centralized(&graphs, pcm.pcm_threshold, pcm.pcm_min_clique);
     let mut all_oracle = Vec::new();
     if let Some(g) = &oracle {
         let mut pairs = BTreeMap::new();
-        for r in 0..n {
+        for (r, gt) in truth.iter().enumerate() {
             let stamps = keyframe_stamps(&dir(r).join("keyframes.csv"));
             let (mut times, mut poses) = (Vec::new(), Vec::new());
             for (k, p) in g.keys().iter().zip(g.poses()) {
@@ -379,8 +391,10 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
                     }
                 }
             }
-            let Ok(est) = Trajectory::new(times, poses) else { continue };
-            if let Some(p) = truth[r].as_ref().and_then(|gt| associated(gt, &est)) {
+            let Ok(est) = Trajectory::new(times, poses) else {
+                continue;
+            };
+            if let Some(p) = gt.as_ref().and_then(|gt| associated(gt, &est)) {
                 pairs.insert(r, p);
             }
         }
@@ -424,7 +438,9 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
         let mut seen = BTreeSet::new();
         for e in merged.edges() {
             let (a, b) = (keys[e.i], keys[e.j]);
-            let (Some(ra), Some(rb)) = (key::robot(a), key::robot(b)) else { continue };
+            let (Some(ra), Some(rb)) = (key::robot(a), key::robot(b)) else {
+                continue;
+            };
             if ra == rb || !seen.insert((a.min(b), a.max(b))) {
                 continue;
             }
@@ -438,7 +454,8 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
                 let d = e.measured.inverse() * (pa.inverse() * pb);
                 (d.translation.vector.norm(), d.rotation.angle().to_degrees())
             });
-            let is_true = error.is_some_and(|(t, r)| t < TRUE_TRANSLATION_M && r < TRUE_ROTATION_DEG);
+            let is_true =
+                error.is_some_and(|(t, r)| t < TRUE_TRANSLATION_M && r < TRUE_ROTATION_DEG);
             let is_aliased = ta.zip(tb).is_some_and(|((fa, _), (fb, _))| {
                 aliased.iter().any(|&(xa, xfa, xb, xfb)| {
                     let near = |f: usize, g: usize| f.abs_diff(g) <= ALIAS_FRAMES;
@@ -545,7 +562,10 @@ fn markdown(s: &Summary, bw_table: &str) -> String {
         s.durations.robots_cpu_s,
     );
     let _ = writeln!(t, "![trajectories](trajectories.png)\n");
-    let _ = writeln!(t, "## Trajectory error (ATE, RMSE of keyframe positions, m)\n");
+    let _ = writeln!(
+        t,
+        "## Trajectory error (ATE, RMSE of keyframe positions, m)\n"
+    );
     let _ = writeln!(
         t,
         "| robot | keyframes | odometry alone | team estimate | team estimate, team frame | centralized oracle, team frame | anchored to | converged |"
@@ -586,21 +606,37 @@ fn markdown(s: &Summary, bw_table: &str) -> String {
     let _ = writeln!(t, "| | accepted | rejected |\n|---|---|---|");
     let _ = writeln!(t, "| true | {} | {} |", c.true_accepted, c.true_rejected);
     let _ = writeln!(t, "| false | {} | {} |", c.false_accepted, c.false_rejected);
-    let _ = writeln!(t, "| of which aliased | {} | {} |\n", c.aliased_accepted, c.aliased - c.aliased_accepted);
+    let _ = writeln!(
+        t,
+        "| of which aliased | {} | {} |\n",
+        c.aliased_accepted,
+        c.aliased - c.aliased_accepted
+    );
     let _ = writeln!(
         t,
         "True: the measurement agrees with the ground-truth relative pose within {TRUE_TRANSLATION_M} m and {TRUE_ROTATION_DEG}°. Aliased: within {ALIAS_FRAMES} frames of a pair `closures.csv` lists as two copies of one building.\n"
     );
-    let _ = writeln!(t, "## Bandwidth (paper Table II layout, `doorslam bw`)\n\n```\n{bw_table}\n```\n");
+    let _ = writeln!(
+        t,
+        "## Bandwidth (paper Table II layout, `doorslam bw`)\n\n```\n{bw_table}\n```\n"
+    );
     let _ = writeln!(t, "![bytes over time](bytes.png)\n");
-    let _ = writeln!(t, "## Timeline\n\n| flight time (s) | event | robots |\n|---|---|---|");
+    let _ = writeln!(
+        t,
+        "## Timeline\n\n| flight time (s) | event | robots |\n|---|---|---|"
+    );
     for e in &s.timeline {
-        let _ = writeln!(t, "| {:.1} | {} | {} |", e.t_s, e.event, e.robots.join(", "));
+        let _ = writeln!(
+            t,
+            "| {:.1} | {} | {} |",
+            e.t_s,
+            e.event,
+            e.robots.join(", ")
+        );
     }
     let _ = writeln!(
         t,
-        "\nFiles: `summary.json` (these figures), `<robot>/` (robot.toml, robot.log, ledger.json, status.json, backend.json, odometry.tum, team_estimate.tum, graph.g2o, keyframes.csv, the journal), `world/` (the rendered flights and their truth). `doorslam bw --json {}` reads the ledgers.",
-        "<this folder>"
+        "\nFiles: `summary.json` (these figures), `<robot>/` (robot.toml, robot.log, ledger.json, status.json, backend.json, odometry.tum, team_estimate.tum, graph.g2o, keyframes.csv, the journal), `world/` (the rendered flights and their truth). `doorslam bw --json <this folder>` reads the ledgers."
     );
     t
 }

@@ -203,8 +203,14 @@ impl Robot {
         RobotSnapshot {
             name: self.name(),
             state: self.state,
-            frames: frontend.as_ref().and_then(|f| f.get("frames")).and_then(|x| x.as_u64()),
-            lost: frontend.as_ref().and_then(|f| f.get("lost")).and_then(|x| x.as_u64()),
+            frames: frontend
+                .as_ref()
+                .and_then(|f| f.get("frames"))
+                .and_then(|x| x.as_u64()),
+            lost: frontend
+                .as_ref()
+                .and_then(|f| f.get("lost"))
+                .and_then(|x| x.as_u64()),
             keyframes: u(b.and_then(|b| b.get("keyframes"))),
             rendezvous,
             closures: u(b.and_then(|b| b.get("closures"))),

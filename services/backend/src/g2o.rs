@@ -529,8 +529,7 @@ pub fn write_g2o(graph: &Graph, path: &Path) -> Result<(), GraphError> {
             }
             for e in g.edges() {
                 let (a, b) = (g.keys()[e.i], g.keys()[e.j]);
-                writeln!(w, "{}", se3_edge_line(a, b, &e.measured, &e.information))
-                    .map_err(io)?;
+                writeln!(w, "{}", se3_edge_line(a, b, &e.measured, &e.information)).map_err(io)?;
             }
         }
     }

@@ -238,9 +238,11 @@ fn bad_envelopes_are_refused_and_counted() {
         .bridge
         .on_envelope(EnvelopeEvent::PeerPresent as u32, 200, 1, &[])
         .is_err());
-    assert!(a
-        .bridge
-        .on_envelope(EnvelopeEvent::PeerPresent as u32, 0, 1, &[])
-        .is_err(), "this robot itself is no peer");
+    assert!(
+        a.bridge
+            .on_envelope(EnvelopeEvent::PeerPresent as u32, 0, 1, &[])
+            .is_err(),
+        "this robot itself is no peer"
+    );
     assert_eq!(a.bridge.stats().bad_envelopes, 4);
 }

@@ -144,11 +144,7 @@ impl Shared {
 
     /// Keyframes known (the highest index + 1).
     pub fn keyframes(&self) -> u64 {
-        self.lock()
-            .features
-            .keys()
-            .next_back()
-            .map_or(0, |k| k + 1)
+        self.lock().features.keys().next_back().map_or(0, |k| k + 1)
     }
 
     /// An own keyframe from the front-end: its features, for verification packets and
@@ -198,7 +194,12 @@ impl Shared {
         };
         let q = match Descriptor::quantize(k, &d.values[..DESCRIPTOR_DIM]) {
             Ok(q) => q,
-            Err(e) => return refuse(&mut s, format!("descriptor of keyframe {}: {e}", d.keyframe)),
+            Err(e) => {
+                return refuse(
+                    &mut s,
+                    format!("descriptor of keyframe {}: {e}", d.keyframe),
+                )
+            }
         };
         if let Err(e) = s.index.insert(q.clone()) {
             return refuse(&mut s, e.to_string());
@@ -222,7 +223,10 @@ impl Shared {
     /// Envelopes and closures for the back-end, oldest first.
     pub fn take_for_backend(&self) -> (Vec<ToBackend>, Vec<doorslam_ipc::LoopClosure>) {
         let mut s = self.lock();
-        (s.to_backend.drain(..).collect(), s.closures.drain(..).collect())
+        (
+            s.to_backend.drain(..).collect(),
+            s.closures.drain(..).collect(),
+        )
     }
 
     /// Presence envelopes of every peer present now (after the back-end restarted, it
@@ -361,7 +365,10 @@ impl Verifier for PnpVerifier {
         let mut s = self.0.lock();
         let calib = s.calib;
         let Some(own) = s.features.get(&key::index(m.query)) else {
-            *s.stats.rejected.entry("unknown_keyframe".into()).or_default() += 1;
+            *s.stats
+                .rejected
+                .entry("unknown_keyframe".into())
+                .or_default() += 1;
             return None;
         };
         let (remote_calib, remote) = from_packet(packet, s.settings.verify.disparity_sigma_px);
@@ -512,7 +519,11 @@ mod tests {
         (0..300)
             .map(|_| {
                 let u = |v: u64| (v % 10_000) as f64 / 10_000.0;
-                let p = Point3::new(u(next()) * 10.0 - 5.0, u(next()) * 6.0 - 3.0, 4.0 + u(next()) * 12.0);
+                let p = Point3::new(
+                    u(next()) * 10.0 - 5.0,
+                    u(next()) * 6.0 - 3.0,
+                    4.0 + u(next()) * 12.0,
+                );
                 let d = std::array::from_fn(|_| (next() & 0xff) as u8);
                 (p, d)
             })
@@ -566,14 +577,17 @@ mod tests {
     }
 
     fn unit(i: usize) -> Vec<f32> {
-        (0..DESCRIPTOR_DIM).map(|k| if k == i { 1.0 } else { 0.0 }).collect()
+        (0..DESCRIPTOR_DIM)
+            .map(|k| if k == i { 1.0 } else { 0.0 })
+            .collect()
     }
 
     #[test]
     fn descriptors_are_batched_by_keyframe_range_and_gaps_are_covered() {
         let s = Shared::new(0, calib(), MatchSettings::default());
         for id in [0, 1, 3] {
-            s.add_descriptor(&descriptor(0, id, &unit(id as usize))).unwrap();
+            s.add_descriptor(&descriptor(0, id, &unit(id as usize)))
+                .unwrap();
         }
         let mut places = Places(s.clone());
         let b = places.descriptors_since(0, 2);
@@ -595,7 +609,8 @@ mod tests {
     fn matching_keeps_the_nearest_below_the_threshold() {
         let s = Shared::new(1, calib(), MatchSettings::default());
         for id in 0..5 {
-            s.add_descriptor(&descriptor(1, id, &unit(id as usize))).unwrap();
+            s.add_descriptor(&descriptor(1, id, &unit(id as usize)))
+                .unwrap();
         }
         let peer = RobotId::new("a").unwrap();
         let near = Descriptor::quantize(key::symbol(0, 7).unwrap(), &unit(3)).unwrap();
@@ -639,7 +654,9 @@ mod tests {
             query: key::symbol(0, 99).unwrap(),
             ..m
         };
-        assert!(PnpVerifier(sa.clone()).verify(&peer, &unknown, &packet).is_none());
+        assert!(PnpVerifier(sa.clone())
+            .verify(&peer, &unknown, &packet)
+            .is_none());
         assert_eq!(sa.stats().rejected["unknown_keyframe"], 1);
     }
 
@@ -665,7 +682,10 @@ mod tests {
             key_a: key::symbol(0, 3).unwrap(),
             key_b: key::symbol(1, 8).unwrap(),
             relative: Pose::from_se3(&SE3::identity()).unwrap(),
-            information: Information::from_matrix(&(doorslam_geometry::TangentMatrix::identity() * 50.0)).unwrap(),
+            information: Information::from_matrix(
+                &(doorslam_geometry::TangentMatrix::identity() * 50.0),
+            )
+            .unwrap(),
             inliers: 40,
         };
         relay.loop_closures(&peer, &[closure]);
@@ -679,7 +699,10 @@ mod tests {
         assert_eq!((closures[0].robot_a, closures[0].keyframe_a), (0, 3));
         assert_eq!((closures[0].robot_b, closures[0].keyframe_b), (1, 8));
         // What the back-end queues for robot 1 goes to the peer that said it is robot 1.
-        s.queue_for_peer(1, Message::new(header.clone(), Body::Hello(Hello { robot: 0 })));
+        s.queue_for_peer(
+            1,
+            Message::new(header.clone(), Body::Hello(Hello { robot: 0 })),
+        );
         assert_eq!(relay.messages_for(&RobotId::new("other").unwrap()).len(), 0);
         assert_eq!(relay.messages_for(&peer).len(), 1);
         assert_eq!(relay.messages_for(&peer).len(), 0);

@@ -119,7 +119,10 @@ impl RobotSide for IpcSide {
                 Ok(EnvelopeEvent::Message) => match Message::decode(e.bytes()) {
                     Ok(m) => match u8::try_from(e.peer_robot) {
                         Ok(r) => self.shared.queue_for_peer(r, m),
-                        Err(_) => tracing::error!(robot = e.peer_robot, "team: back-end message for a robot number out of range"),
+                        Err(_) => tracing::error!(
+                            robot = e.peer_robot,
+                            "team: back-end message for a robot number out of range"
+                        ),
                     },
                     Err(err) => tracing::error!("team: back-end message does not decode: {err}"),
                 },

@@ -87,8 +87,12 @@ pub trait BackendExchange {
     /// A message from `peer` of a kind the rendezvous itself does not handle (pose
     /// estimates, and any back-end kind added to the wire format), each delivered once,
     /// with the header it came with (the peer's epoch and this kind's sequence).
-    fn receive(&mut self, peer: &RobotId, header: &Header, body: Body)
-        -> Result<(), BackendRefusal>;
+    fn receive(
+        &mut self,
+        peer: &RobotId,
+        header: &Header,
+        body: Body,
+    ) -> Result<(), BackendRefusal>;
     /// The peer said Hello (`present`: its robot number and team-link epoch are known
     /// now; called again when it restarts with a new epoch), or left radio range.
     fn presence(&mut self, _peer: &RobotId, _robot: u8, _epoch: u64, _present: bool) {}

@@ -362,7 +362,9 @@ impl RobotSide for StandinSide {
     fn pieces(&mut self) -> Pieces {
         let place = SimPlaces::new(self.world, self.robot, self.features);
         if let Some(old) = &self.created {
-            place.created().store(old.load(Ordering::Acquire), Ordering::Release);
+            place
+                .created()
+                .store(old.load(Ordering::Acquire), Ordering::Release);
         }
         self.created = Some(place.created());
         let mut backend = EchoBackend::new(self.robot);
@@ -509,7 +511,10 @@ pub fn run_robot(
         ),
         Some(Err(e)) => {
             let aside = dir.join(format!("ledger.json.unreadable-{epoch}"));
-            tracing::error!("team: {e}; kept as {} and starting a new ledger", aside.display());
+            tracing::error!(
+                "team: {e}; kept as {} and starting a new ledger",
+                aside.display()
+            );
             std::fs::rename(&previous, &aside).map_err(|source| RunError::Io {
                 path: previous.clone(),
                 source,

@@ -15,8 +15,7 @@ use doorslam_geometry::{key, SE3};
 use doorslam_ipc::wire::{
     Body, CompactPose, Descriptor, Estimate, Header, Information, LoopClosure, Match, Pose,
     PoseEstimate, PoseEstimates, RobotId, Stage, VerificationCamera, VerificationFeature,
-    VerificationFeatures,
-    DESCRIPTOR_DIM,
+    VerificationFeatures, DESCRIPTOR_DIM,
 };
 
 use crate::protocol::{

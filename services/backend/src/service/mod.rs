@@ -358,7 +358,8 @@ impl TeamPorts {
 pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
     let mut state = BackendState::new(config.robot_index, config.optimize_every)
         .ok_or(ServiceError::Robot(config.robot_index))?;
-    let robot = u8::try_from(config.robot_index).map_err(|_| ServiceError::Robot(config.robot_index))?;
+    let robot =
+        u8::try_from(config.robot_index).map_err(|_| ServiceError::Robot(config.robot_index))?;
     if let Some(options) = &config.distributed {
         let id = RobotId::new(&config.robot)
             .map_err(|e| ServiceError::Config(format!("robot id {:?}: {e}", config.robot)))?;
@@ -388,7 +389,12 @@ pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
             };
             // A team link already running learns this back-end's epoch (and that whatever
             // its peers think we hold is gone if we restarted).
-            ports.send(EnvelopeEvent::BackendStarted, config.robot_index, bridge.epoch(), &[])?;
+            ports.send(
+                EnvelopeEvent::BackendStarted,
+                config.robot_index,
+                bridge.epoch(),
+                &[],
+            )?;
             Some(ports)
         }
         None => None,

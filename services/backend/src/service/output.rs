@@ -22,10 +22,10 @@ use doorslam_geometry::key;
 use serde::Serialize;
 
 use super::state::{BackendReport, BackendState};
-use crate::g2o::{se3_edge_line, se3_vertex_line};
 use super::team::BridgeStats;
 use super::trajectory::tum_text;
 use super::ServiceError;
+use crate::g2o::{se3_edge_line, se3_vertex_line};
 
 /// The output files of one back-end.
 #[derive(Debug, Clone)]
@@ -164,7 +164,11 @@ impl Outputs {
     /// Writes the three files.
     pub fn write(&self, state: &BackendState) -> Result<(), ServiceError> {
         let received = state.received_poses();
-        let odometry = tum_text(received.iter().map(|(id, (stamp, pose))| (*id, *stamp, pose)));
+        let odometry = tum_text(
+            received
+                .iter()
+                .map(|(id, (stamp, pose))| (*id, *stamp, pose)),
+        );
         self.write_file("odometry.tum", &odometry)?;
         let mut ids = String::from("id,stamp_ns\n");
         for (id, (stamp, _)) in received {

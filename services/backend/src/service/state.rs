@@ -431,7 +431,10 @@ impl BackendState {
         if let Some(team) = self.team.as_mut() {
             if let Err(e) = team.add_pose(k, input.pose) {
                 self.report.team_refused += 1;
-                tracing::error!("backend: distributed back-end refused keyframe {}: {e}", input.id);
+                tracing::error!(
+                    "backend: distributed back-end refused keyframe {}: {e}",
+                    input.id
+                );
             }
         }
     }
@@ -443,8 +446,7 @@ impl BackendState {
         } else {
             c.key_b
         };
-        self.graph.index_of(own).is_some()
-            && !self.closures.contains(&(c.key_a, c.key_b))
+        self.graph.index_of(own).is_some() && !self.closures.contains(&(c.key_a, c.key_b))
     }
 
     fn journal_closure(
