@@ -76,12 +76,14 @@ fn team_certs_writes_a_ca_and_a_certificate_per_robot_and_refuses_bad_input() {
     assert!(stderr(&o).contains("Robot One"), "{}", stderr(&o));
 }
 
+/// A robot whose team link runs with the stand-in pieces: these tests are about the link
+/// (TLS, logs), not the robot's camera or calibration.
 fn robot_config(dir: &Path, body: &str) -> String {
     let cfg = dir.join("robot.toml");
     std::fs::write(
         &cfg,
         format!(
-            "[robot]\nid = \"a\"\n[team]\nname = \"t1\"\nmulticast_scouting = false\nrun_dir = \"{}\"\n{body}",
+            "[robot]\nid = \"a\"\n[team]\nname = \"t1\"\nmulticast_scouting = false\npieces = \"standin\"\nrun_dir = \"{}\"\n{body}",
             dir.join("run").display()
         ),
     )

@@ -314,8 +314,12 @@ fn two_robots_in_network_namespaces_meet_are_cut_off_and_meet_again() {
     assert_eq!(keys, (0..300).collect::<Vec<u64>>());
     assert_eq!(sb["peers"]["a"]["stats"]["descriptors_delivered"], 300);
     assert_eq!(sb["peers"]["a"]["stats"]["descriptors_redelivered"], 0);
-    assert_eq!(sa["peers"]["b"]["stats"]["meetings"], 2);
-    assert_eq!(sb["peers"]["a"]["stats"]["meetings"], 2);
+    // At least the two meetings the test made (cut, join); a loaded machine may let a
+    // session lapse once more (Zenoh's lease), which must not change what was delivered.
+    for (s, peer) in [(&sa, "b"), (&sb, "a")] {
+        let meetings = s["peers"][peer]["stats"]["meetings"].as_u64().unwrap();
+        assert!(meetings >= 2, "{meetings} meetings with {peer}");
+    }
 
     // The ledgers add up to the bytes the links published, and fit what left each host.
     let mut ledgers_sent = 0;

@@ -23,6 +23,8 @@ pub enum IpcError {
     NoRoom { service: String },
     #[error("iceoryx2 service {service:?}: could not fill the sample: {reason}")]
     Payload { service: String, reason: String },
+    #[error("iceoryx2 domain {domain:?} (environment variable DOORSLAM_IPC_DOMAIN): {reason}")]
+    Domain { domain: String, reason: String },
 }
 
 /// The topics one robot publishes internally.
@@ -105,12 +107,62 @@ pub fn create_node(role: &str) -> Result<(Node<ipc::Service>, u64), IpcError> {
     let node_name: NodeName = role
         .try_into()
         .map_err(|e| IpcError::Node(format!("invalid node name {role:?}: {e:?}")))?;
+    let mut config = Config::default();
+    if let Some(domain) = domain_from_env()? {
+        config.global.prefix = domain_prefix(&domain)?;
+    }
     let node = NodeBuilder::new()
         .name(&node_name)
+        .config(&config)
         .create::<ipc::Service>()
         .map_err(|e| IpcError::Node(format!("{e:?}")))?;
     let cleaned = cleanup_dead_nodes(&node);
     Ok((node, cleaned))
+}
+
+/// The environment variable that puts a process in an iceoryx2 domain of its own.
+///
+/// Processes see each other's services only within one domain: every file iceoryx2
+/// creates is prefixed `iox2_<domain>_`. Unset, a process is in the default domain (the
+/// one `doorslam up` and the systemd units use). Two teams simulated on one machine at
+/// once (e.g. two `doorslam demo` runs, or tests in parallel) each set their own, so their
+/// robots `a` never share a frame service.
+pub const DOMAIN_ENV: &str = "DOORSLAM_IPC_DOMAIN";
+
+/// The domain named by [`DOMAIN_ENV`], if set (non-empty).
+pub fn domain_from_env() -> Result<Option<String>, IpcError> {
+    match std::env::var(DOMAIN_ENV) {
+        Ok(d) if d.is_empty() => Ok(None),
+        Ok(d) => {
+            domain_prefix(&d)?;
+            Ok(Some(d))
+        }
+        Err(std::env::VarError::NotPresent) => Ok(None),
+        Err(std::env::VarError::NotUnicode(_)) => Err(IpcError::Domain {
+            domain: format!("{:?}", std::env::var_os(DOMAIN_ENV)),
+            reason: "not valid UTF-8".into(),
+        }),
+    }
+}
+
+/// The iceoryx2 file prefix of `domain`: letters, digits, `-` and `_`, at most 32 bytes.
+fn domain_prefix(domain: &str) -> Result<iceoryx2_bb_system_types::file_name::FileName, IpcError> {
+    let bad = |reason: &str| IpcError::Domain {
+        domain: domain.to_string(),
+        reason: reason.to_string(),
+    };
+    if domain.len() > 32 {
+        return Err(bad("longer than 32 bytes"));
+    }
+    if !domain
+        .bytes()
+        .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_')
+    {
+        return Err(bad("only letters, digits, '-' and '_' are allowed"));
+    }
+    let prefix = format!("iox2_{domain}_");
+    iceoryx2_bb_system_types::file_name::FileName::new(prefix.as_bytes())
+        .map_err(|e| bad(&format!("{e:?}")))
 }
 
 /// Removes stale resources of dead nodes; returns how many were cleaned.

@@ -102,6 +102,12 @@ impl Robot {
                 "RUST_LOG",
                 std::env::var("RUST_LOG").unwrap_or_else(|_| "info,zenoh=warn".into()),
             )
+            // An iceoryx2 domain of this demo's own: robots `a`, `b`... of two demos (or
+            // of a demo and a `doorslam up` on the same machine) never share a service.
+            .env(
+                doorslam_ipc::service::DOMAIN_ENV,
+                format!("demo{}", std::process::id()),
+            )
             .stdin(Stdio::null())
             .stdout(log)
             .stderr(err)
