@@ -498,7 +498,7 @@ fn limits_are_checked_before_allocation() {
             "{m:?}"
         );
     };
-    refused(Body::Hello(Hello { robot: 26 }));
+    refused(Body::Hello(Hello { robot: 52 }));
     let (d1, d0) = (descriptor(1), descriptor(0));
     let batch = |descriptors| {
         Body::Descriptors(Descriptors {
@@ -599,7 +599,7 @@ fn invalid_values_are_named() {
 
 fn arb_key() -> impl Strategy<Value = u64> {
     (
-        0u8..26,
+        0u8..52,
         prop_oneof![0u64..5000, 0..=doorslam_geometry::key::MAX_INDEX],
     )
         .prop_map(|(r, i)| key(r, i))
@@ -640,7 +640,7 @@ fn arb_information() -> impl Strategy<Value = Information> {
 
 fn arb_descriptors() -> impl Strategy<Value = Descriptors> {
     (
-        0u8..26,
+        0u8..52,
         0u64..100_000,
         0u64..3,
         prop::collection::vec(
@@ -691,7 +691,7 @@ fn arb_feature() -> impl Strategy<Value = VerificationFeature> {
 
 fn arb_body() -> impl Strategy<Value = Body> {
     prop_oneof![
-        (0u8..26).prop_map(|robot| Body::Hello(Hello { robot })),
+        (0u8..52).prop_map(|robot| Body::Hello(Hello { robot })),
         arb_descriptors().prop_map(Body::Descriptors),
         prop::collection::vec((arb_key(), arb_key(), 0f32..2.0), 0..20).prop_map(|m| {
             Body::Matches(Matches {
@@ -766,7 +766,7 @@ fn arb_body() -> impl Strategy<Value = Body> {
             any::<u64>(),
             any::<u64>(),
             0u8..3,
-            (any::<bool>(), 0u8..26, 0u8..26),
+            (any::<bool>(), 0u8..52, 0u8..52),
             prop::collection::btree_set(0u64..100_000, 0..10),
             prop::collection::vec((arb_pose(), prop::array::uniform9(-2.0f64..2.0)), 10)
         )

@@ -10,7 +10,7 @@ use libfuzzer_sys::arbitrary::{Result, Unstructured};
 use libfuzzer_sys::fuzz_target;
 
 fn key(u: &mut Unstructured<'_>) -> Result<u64> {
-    let robot = u.int_in_range(0..=25u8)?;
+    let robot = u.int_in_range(0..=51u8)?;
     let index = u.int_in_range(0..=doorslam_geometry::key::MAX_INDEX)?;
     Ok(symbol(robot, index).expect("in range"))
 }
@@ -39,10 +39,10 @@ fn information(u: &mut Unstructured<'_>) -> Result<Option<Information>> {
 fn body(u: &mut Unstructured<'_>) -> Result<Option<Body>> {
     Ok(Some(match u.int_in_range(0..=7u8)? {
         0 => Body::Hello(Hello {
-            robot: u.int_in_range(0..=25)?,
+            robot: u.int_in_range(0..=51)?,
         }),
         1 => {
-            let robot = u.int_in_range(0..=25u8)?;
+            let robot = u.int_in_range(0..=51u8)?;
             let start = u.int_in_range(0..=1u64 << 40)?;
             let mut index = start;
             let mut descriptors = Vec::new();
@@ -109,7 +109,7 @@ fn body(u: &mut Unstructured<'_>) -> Result<Option<Body>> {
                 Body::LoopClosures(LoopClosures { closures })
             } else {
                 Body::SeparatorGraph(SeparatorGraph {
-                    origin: u.int_in_range(0..=25u8)?,
+                    origin: u.int_in_range(0..=51u8)?,
                     version: u.arbitrary()?,
                     edges: closures,
                 })
@@ -119,8 +119,8 @@ fn body(u: &mut Unstructured<'_>) -> Result<Option<Body>> {
             let (optimization, round) = (u.arbitrary()?, u.arbitrary()?);
             let stage = [Stage::Rotation, Stage::Pose, Stage::Refine][u.int_in_range(0..=2usize)?];
             let flags = if u.arbitrary()? { ESTIMATES_CONVERGED } else { 0 };
-            let anchor = u.int_in_range(0..=25u8)?;
-            let robot = u.int_in_range(0..=25u8)?;
+            let anchor = u.int_in_range(0..=51u8)?;
+            let robot = u.int_in_range(0..=51u8)?;
             let mut index = u.int_in_range(0..=1u64 << 40)?;
             let mut estimates = Vec::new();
             for _ in 0..u.int_in_range(0..=50)? {

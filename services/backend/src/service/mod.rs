@@ -36,7 +36,7 @@ pub enum ServiceError {
     Ipc(#[from] doorslam_ipc::IpcError),
     #[error(transparent)]
     Journal(#[from] JournalError),
-    #[error("robot index {0} is outside 0..26 (multi-robot keys use 'a' + index)")]
+    #[error("robot index {0} is outside 0..52 (multi-robot keys use 'a'..'z', then 'A'..'Z')")]
     Robot(u32),
     #[error("backend config: {0}")]
     Config(String),
