@@ -78,8 +78,11 @@ pub struct RunReport {
     /// the condensed graphs travel in), the results as compact `PoseEstimates`.
     pub bytes_centralized: u64,
     pub bytes_ratio: f64,
-    /// The same with the graphs as `LoopClosures` (82 B per edge: the baseline before
-    /// the compact graph encoding).
+    /// The same when robots talk only to robots they share closures with (as the agents
+    /// do): each robot's graph and results relayed over its fewest hops to the lowest.
+    pub bytes_centralized_relayed: u64,
+    /// The same as `bytes_centralized` with the graphs as `LoopClosures` (82 B per edge:
+    /// the baseline before the compact graph encoding).
     pub bytes_centralized_loop_closures: u64,
     /// Bytes and messages per wire kind (`Kind::name`).
     pub bytes_by_kind: BTreeMap<String, u64>,
@@ -235,16 +238,53 @@ fn reversed(z: &SE3, information: &TangentMatrix) -> (SE3, TangentMatrix) {
     (z.inverse(), (r + r.transpose()) * 0.5)
 }
 
-/// Bytes of the centralized alternative: every robot but the lowest sends its edges
-/// (odometry and the closures no lower robot sends), the lowest sends each its optimized
-/// poses back. Returns (graphs as `SeparatorGraph`, graphs as `LoopClosures`).
+/// Bytes of the centralized alternative.
+struct Centralized {
+    /// Graphs as `SeparatorGraph`, results as `PoseEstimates`.
+    direct: u64,
+    /// The same, each robot's share multiplied by its hops to the central robot.
+    relayed: u64,
+    /// Graphs as `LoopClosures`.
+    loop_closures: u64,
+}
+
+/// Hops from `from` to every robot over robots that share closures (who can meet).
+fn hops(from: u8, closures: &[Edge]) -> Result<BTreeMap<u8, u64>, DpgoError> {
+    let mut adjacent: BTreeMap<u8, BTreeSet<u8>> = BTreeMap::new();
+    for c in closures {
+        let (a, b) = (robot_of(c.0)?, robot_of(c.1)?);
+        adjacent.entry(a).or_default().insert(b);
+        adjacent.entry(b).or_default().insert(a);
+    }
+    let mut hops = BTreeMap::from([(from, 0)]);
+    let mut queue = std::collections::VecDeque::from([from]);
+    while let Some(r) = queue.pop_front() {
+        let h = hops[&r];
+        for &n in adjacent.get(&r).into_iter().flatten() {
+            if let std::collections::btree_map::Entry::Vacant(e) = hops.entry(n) {
+                e.insert(h + 1);
+                queue.push_back(n);
+            }
+        }
+    }
+    Ok(hops)
+}
+
+/// Every robot but the lowest sends its edges (odometry and the closures no lower robot
+/// sends), the lowest sends each its optimized poses back.
 fn centralized_bytes(
     parts: &BTreeMap<u8, RobotPart>,
     closures: &[Edge],
-) -> Result<(u64, u64), DpgoError> {
-    let Some(&central) = parts.keys().next() else {
-        return Ok((0, 0));
+) -> Result<Centralized, DpgoError> {
+    let mut c = Centralized {
+        direct: 0,
+        relayed: 0,
+        loop_closures: 0,
     };
+    let Some(&central) = parts.keys().next() else {
+        return Ok(c);
+    };
+    let hops = hops(central, closures)?;
     let quantize = |k: u64, e: doorslam_ipc::wire::QuantizeError| DpgoError::Quantize {
         key: key::label(k),
         source: e,
@@ -264,12 +304,11 @@ fn centralized_bytes(
             inliers: 0,
         })
     };
-    let mut total = 0u64;
-    let mut total_closures = 0u64;
     for (&r, part) in parts {
         if r == central {
             continue;
         }
+        let (mut total, mut total_closures) = (0u64, 0u64);
         let id = robot_id(r)?;
         let mut edges = Vec::new();
         let mut own: Vec<CondensedEdge> = Vec::new();
@@ -360,16 +399,20 @@ fn centralized_bytes(
             total += m.encoded_len() as u64;
             total_closures += m.encoded_len() as u64;
         }
+        // A robot no closure connects would be met directly.
+        c.direct += total;
+        c.relayed += total * hops.get(&r).copied().unwrap_or(1).max(1);
+        c.loop_closures += total_closures;
     }
-    Ok((total, total_closures))
+    Ok(c)
 }
 
 /// Plays the team of a merged multi-robot graph and compares with the centralized optimum.
 pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, DpgoError> {
     let start = Instant::now();
     let (parts, closures) = split(graph)?;
-    let (bytes_centralized, bytes_centralized_loop_closures) =
-        centralized_bytes(&parts, &closures)?;
+    let centralized = centralized_bytes(&parts, &closures)?;
+    let bytes_centralized = centralized.direct;
     // The centralized reference, same gauge: the lowest robot's first pose, at its value.
     let mut central = graph.clone();
     let anchor_key = parts
@@ -386,6 +429,7 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
     // The centralized oracle on the same closures: offline PCM on the merged graph with
     // the agents' settings.
     let mut rejected_centralized = 0usize;
+    let mut oracle_kept: Option<BTreeSet<(u64, u64)>> = None;
     if let Some(p) = options.agent.pcm {
         let mut pcm =
             Pcm::new(p.threshold, Scope::InterRobot).map_err(|e| DpgoError::Pcm(e.to_string()))?;
@@ -412,6 +456,7 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
             classes[n - 1] != EdgeClass::InterLoop || keep.contains(&(keys[e.i], keys[e.j]))
         });
         rejected_centralized = before - central.edges().len();
+        oracle_kept = Some(keep);
     }
     let anchor = central.index_of(anchor_key).unwrap_or_default();
     SE3::chordal(&mut central, anchor)?;
@@ -535,6 +580,21 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
             break;
         }
     }
+    if let (Some(kept), Some(solver)) = (&oracle_kept, agents.values().find(|a| a.solves_team())) {
+        let rejected: BTreeSet<(u64, u64)> = solver.rejected_closures().iter().copied().collect();
+        for c in &closures {
+            let in_loop = !rejected.contains(&(c.0, c.1)) && !rejected.contains(&(c.1, c.0));
+            let oracle = kept.contains(&(c.0, c.1));
+            if in_loop != oracle {
+                tracing::debug!(a = key::label(c.0), b = key::label(c.1), in_loop, oracle, "PCM verdicts differ");
+            }
+        }
+    }
+    if !converged {
+        for a in agents.values().filter(|a| !a.converged()) {
+            tracing::debug!(robot = a.robot(), anchored = a.anchored(), "not converged");
+        }
+    }
     // The team's estimate against the centralized one, in the centralized frame (the
     // condensed method fixes the anchor pose at the identity, the centralized solve and
     // DGS at its initial value: one rigid transform apart, which χ² does not see).
@@ -577,7 +637,8 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
         bytes,
         bytes_centralized,
         bytes_ratio: bytes as f64 / bytes_centralized.max(1) as f64,
-        bytes_centralized_loop_closures,
+        bytes_centralized_relayed: centralized.relayed,
+        bytes_centralized_loop_closures: centralized.loop_closures,
         bytes_by_kind,
         messages_by_kind,
         centralized_chi2,

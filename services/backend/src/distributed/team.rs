@@ -89,6 +89,8 @@ pub(crate) struct TeamState {
     pub path: Vec<u8>,
     /// Incremented when the parent changes (see `Route::session`).
     pub session: u64,
+    /// The step at which the path last changed.
+    pub path_changed_at: u64,
     /// Solver: the graph versions the last solve used, and the solve count.
     pub solved_with: BTreeMap<u8, u64>,
     pub rounds: u64,
@@ -138,6 +140,36 @@ impl TeamLink {
         self.graphs_held.clear();
         self.est_out.clear();
         self.est_held.clear();
+    }
+
+    /// Messages whose fate is unknown (no acknowledgement in time, or overtaken): they may
+    /// have arrived with their acknowledgement lost, so what the neighbour holds of what
+    /// they carried is uncertain, and it is sent again in full — never on a guess (an
+    /// update of a version the neighbour may not hold would never apply; a route or
+    /// separator the neighbour may hold newer would never be corrected).
+    fn lost(&mut self, routes: usize, graphs: &[(u8, Held)], estimates: &[(u8, Solution)]) {
+        if routes > 0 {
+            self.route_held = None;
+        }
+        for (o, _) in graphs {
+            self.graph_out.forget(|(x, _)| x == o);
+            self.graphs_held.remove(o);
+        }
+        for (r, carried) in estimates {
+            match self.est_held.get_mut(r) {
+                Some(h) if h.anchor == carried.anchor => {
+                    for k in carried.separators.keys() {
+                        h.separators.remove(k);
+                    }
+                    if h.version != carried.version {
+                        h.version = 0;
+                    }
+                }
+                _ => {
+                    self.est_held.remove(r);
+                }
+            }
+        }
     }
 
     fn acks_due(&self) -> bool {
@@ -381,6 +413,7 @@ impl Agent {
                 self.team.session += 1;
             }
             self.team.path = path;
+            self.team.path_changed_at = self.stats.steps;
         }
         let mut solved = false;
         if self.root() == self.robot {
@@ -412,10 +445,11 @@ impl Agent {
         // away come a hop per step: solving before they are all in would send estimates
         // the next solve replaces (bytes for nothing). So the solver waits until every
         // robot of its subtree sent one and no graph changed for a step — for at most
-        // `patience` steps, as graphs may keep changing.
+        // twice `patience` steps (graphs of a large team take a step per hop; a running
+        // team's graphs may keep changing).
         let missing = members(self.subtree()).any(|r| !self.team.graphs.contains_key(&r));
         let fresh = std::mem::take(&mut self.team.fresh);
-        if (missing || fresh) && self.team.waiting < self.options.patience {
+        if (missing || fresh) && self.team.waiting < 2 * self.options.patience {
             self.team.waiting += 1;
             return Ok(false);
         }
@@ -522,9 +556,11 @@ impl Agent {
             }
             let l = &n.team;
             if l.acks_due() || !l.route_out.is_empty() {
+                tracing::trace!(robot = self.robot, n = id, "acks or route in flight");
                 return false;
             }
             if l.route_held.as_ref() != Some(&self.route_for(id, parent, subtree)) {
+                tracing::trace!(robot = self.robot, n = id, "route not held");
                 return false;
             }
             if Some(id) == parent {
@@ -541,6 +577,7 @@ impl Agent {
                     .get(&self.robot)
                     .is_some_and(|s| Some(s.version) >= own_version);
                 if !(graphs_up && l.graph_out.is_empty() && solved_mine) {
+                    tracing::trace!(robot = self.robot, graphs_up, flying = !l.graph_out.is_empty(), solved_mine, "waits for its parent");
                     return false;
                 }
             }
@@ -551,6 +588,7 @@ impl Agent {
                 for r in members(bits) {
                     if let Some(s) = self.team.solutions.get(&r) {
                         if !self.estimates_due(l, r, s).is_empty() {
+                            tracing::trace!(robot = self.robot, child = id, of = r, "estimates due");
                             return false;
                         }
                     }
@@ -626,22 +664,23 @@ impl Agent {
         }
         // What was not acknowledged in time is lost (and what built on it).
         let l = &mut n.team;
-        let lost = l.route_out.expire(step, resend_after).len()
-            + l.est_out.expire(step, resend_after).len();
-        let lost_graphs = l.graph_out.expire(step, resend_after);
-        for (origin, _) in &lost_graphs {
-            l.graph_out.forget(|(o, _)| o == origin);
-        }
-        self.stats.resent += (lost + lost_graphs.len()) as u64;
+        let routes = l.route_out.expire(step, resend_after).len();
+        let graphs = l.graph_out.expire(step, resend_after);
+        let estimates = l.est_out.expire(step, resend_after);
+        l.lost(routes, &graphs, &estimates);
+        self.stats.resent += (routes + graphs.len() + estimates.len()) as u64;
         // The route, when the neighbour's copy differs.
         if l.route_view() != Some(&route) {
             let s = l.route_out.send(step, route.clone());
             out.push(Message::new(self.header(s), Body::Route(route)));
         }
         let n = self.neighbors.get(&neighbor).map(|n| &n.team);
-        // Graphs of the subtree, to the parent.
+        // Graphs of the subtree, to the parent, once the route held for a step: while
+        // routes are being explored (the solver left, robots try each other's stale
+        // routes) a graph sent to a parent of the moment is sent again to the next.
         let mut graphs = Vec::new();
-        if Some(neighbor) == parent {
+        let settled = self.stats.steps > self.team.path_changed_at;
+        if Some(neighbor) == parent && settled {
             for o in members(subtree) {
                 let Some(held) = self.team.graphs.get(&o) else {
                     continue;
@@ -775,6 +814,7 @@ impl Agent {
                     self.stats.ignored_stale += 1;
                     return Ok(false);
                 }
+                tracing::trace!(robot, from = neighbor, path = ?r.path, subtree = r.subtree, session = r.session, "route in");
                 l.route_sequence = Some(h.sequence);
                 // A new session: the neighbour's holdings may have come from elsewhere.
                 if l.route.as_ref().is_some_and(|old| old.session != r.session) {
@@ -849,6 +889,7 @@ impl Agent {
                 // acknowledged, so a sender that still takes us for its child resends them
                 // if we become it again.
                 if Some(neighbor) != parent {
+                    tracing::trace!(robot, from = neighbor, ?parent, "estimates from another robot than the parent ignored");
                     self.stats.ignored_stale += 1;
                     return Ok(false);
                 }
@@ -896,7 +937,9 @@ impl Agent {
         };
         let lost = match a.kind {
             Kind::Route => {
+                // Lost ones first: what a later delivered one carried is certain.
                 let s = l.route_out.acknowledge(a);
+                l.lost(s.lost.len(), &[], &[]);
                 if let Some(r) = s.delivered.into_iter().last() {
                     l.route_held = Some(r);
                 }
@@ -904,18 +947,17 @@ impl Agent {
             }
             Kind::SeparatorGraph => {
                 let s = l.graph_out.acknowledge(a);
+                l.lost(0, &s.lost, &[]);
                 for (o, h) in s.delivered {
                     if l.graphs_held.get(&o).is_none_or(|x| x.version < h.version) {
                         l.graphs_held.insert(o, h);
                     }
                 }
-                for (o, _) in &s.lost {
-                    l.graph_out.forget(|(x, _)| x == o);
-                }
                 s.lost.len()
             }
             Kind::PoseEstimates => {
                 let s = l.est_out.acknowledge(a);
+                l.lost(0, &[], &s.lost);
                 for (r, carried) in s.delivered {
                     let mut held = l.est_held.remove(&r);
                     Solution::apply(&mut held, &carried);

@@ -403,7 +403,12 @@ impl Pcm {
                 Scope::IntraRobot => "the graph has no loop closures between non-consecutive poses of one robot".into(),
             }));
         }
-        for (pair, closures) in new {
+        for (pair, mut closures) in new {
+            // In key order, whatever the order of the graph's edges: the maximum clique
+            // search breaks ties between cliques of one size by vertex order, so the same
+            // closures give the same verdicts wherever PCM runs (offline on a merged
+            // file, or inside the distributed loop on the condensed graphs).
+            closures.sort_by_key(|c| (key::index(c.u), key::index(c.v)));
             self.problems
                 .entry(pair)
                 .or_default()
