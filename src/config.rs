@@ -82,7 +82,7 @@ pub struct RobotSection {
     /// Stable robot id: lowercase letters, digits, `_` or `-` (used in service and key names).
     #[serde(default = "default_id")]
     pub id: String,
-    /// Index in the team (0 = 'a' in multi-robot keys), below 26.
+    /// Index in the team (0 = 'a' in multi-robot keys), below 52 ('a'..'z', then 'A'..'Z').
     #[serde(default)]
     pub index: u32,
 }

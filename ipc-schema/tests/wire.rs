@@ -179,10 +179,52 @@ fn samples() -> Vec<Message> {
             Body::SeparatorGraph(SeparatorGraph {
                 origin: 1,
                 version: 4,
-                edges: vec![closure(0)],
+                base: 3,
+                removed: vec![(key(1, 40), key(1, 52))],
+                edges: vec![graph_edge(40, key(1, 46)), graph_edge(46, key(2, 7))],
+            }),
+        ),
+        Message::new(
+            header("bravo", 8),
+            Route {
+                path: vec![0, 3, 1],
+                subtree: 0b1_0010,
+                session: 2,
+            },
+        ),
+        Message::new(
+            header("bravo", 9),
+            TeamMap::Trajectory(Trajectory {
+                anchor: 0,
+                version: 5,
+                total: 2,
+                poses: [(0, [10.0, 20.0, -1.5]), (3, [10.5, 20.0, -1.5])]
+                    .map(|(i, t)| {
+                        let Estimate::Pose(p) = compact(t) else {
+                            unreachable!()
+                        };
+                        (key(1, 300 + i), p)
+                    })
+                    .to_vec(),
             }),
         ),
     ]
+}
+
+/// An edge of robot b's condensed graph from its pose `a` (the information shared).
+fn graph_edge(a: u64, b: u64) -> GraphEdge {
+    let Estimate::Pose(relative) = compact([1.5, -0.25, 0.125]) else {
+        unreachable!()
+    };
+    thread_local! {
+        static INFORMATION: std::sync::Arc<Information> = std::sync::Arc::new(information());
+    }
+    GraphEdge {
+        key_a: key(1, a),
+        key_b: b,
+        relative,
+        information: INFORMATION.with(std::sync::Arc::clone),
+    }
 }
 
 fn hex(b: &[u8]) -> String {
@@ -191,7 +233,7 @@ fn hex(b: &[u8]) -> String {
 
 // The hello, in full: version 2, kind 1, sender "alpha" (5 bytes), epoch 3, sequence 0,
 // robot 0. The descriptor and feature payloads are long, so those pins cover everything.
-const PINNED: [&str; 8] = [
+const PINNED: [&str; 10] = [
     // hello (11 bytes)
     "020105616c706861030000",
     // descriptors (147 bytes)
@@ -223,12 +265,25 @@ const PINNED: [&str; 8] = [
     ),
     // ack (16 bytes)
     "020705627261766f0306030205010202",
-    // separator graph (92 bytes: origin 1, version 4, then the closure as above)
+    // separator graph (98 bytes): origin 1, version 4, base 3; removed b40-b52 (key a
+    // zigzag 40, key b robot 1 and zigzag +12); two edges: b40 -> b46 with its information,
+    // then b46 -> c7 with tag 0 (the same information).
     concat!(
-        "020805616c70686103070104",
-        "010078012d0000c03f000080be0000003e0000000000000000f304353ff3",
-        "04353f0000c842003c0000003c00000000003c000000000000663200000000000000006632000000",
-        "00000000000000663225",
+        "020805616c70686103070104030150011802",
+        "5001",
+        "0cb817f303fa010300000000ff7f",
+        "01",
+        "0000c842003c0000003c00000000003c0000000000006632000000000000000066320000000000000000000066320c",
+        "0207b817f303fa010300000000ff7f00",
+    ),
+    // route (16 bytes): path a -> d -> b (3 robots), subtree {b, e} = 0b10010, session 2
+    "020905627261766f0308030003011202",
+    // team map reply (49 bytes): tag 1, anchor 0, version 5, total 2, robot 1, two poses
+    // (b300, then b303 as a gap of 3), compact as the pose estimates above
+    concat!(
+        "020a05627261766f03090100050201",
+        "02ac02a09c01c0b802b7170300000000ff7f",
+        "0388a401c0b802b7170300000000ff7f",
     ),
 ];
 
@@ -547,7 +602,7 @@ fn limits_are_checked_before_allocation() {
             "{m:?}"
         );
     };
-    refused(Body::Hello(Hello { robot: 26 }));
+    refused(Body::Hello(Hello { robot: 52 }));
     let (d1, d0) = (descriptor(1), descriptor(0));
     let batch = |descriptors| {
         Body::Descriptors(Descriptors {
@@ -644,11 +699,74 @@ fn invalid_values_are_named() {
     assert!(RobotId::new("").is_err() && RobotId::new(&"a".repeat(33)).is_err());
 }
 
+#[test]
+fn condensed_graph_edges_are_compact_and_informations_canonical() {
+    // An edge that repeats the previous edge's information costs its keys, a compact pose
+    // and one tag byte; one with its own information 46 bytes more (a LoopClosures entry
+    // is 82 bytes).
+    let graph = |n: u64, shared: bool| {
+        Message::new(
+            header("drone-b", 1000),
+            Body::SeparatorGraph(SeparatorGraph {
+                origin: 1,
+                version: 7,
+                base: 0,
+                removed: vec![],
+                edges: (0..n)
+                    .map(|i| {
+                        let mut e = graph_edge(4000 + 3 * i, key(1, 4003 + 3 * i));
+                        if !shared {
+                            let mut m = *information().matrix();
+                            m[(0, 0)] += i as f64;
+                            e.information =
+                                std::sync::Arc::new(Information::from_matrix(&m).unwrap());
+                        }
+                        e
+                    })
+                    .collect(),
+            }),
+        )
+        .encoded_len()
+    };
+    let repeated = graph(21, true) - graph(20, true);
+    let own = graph(21, false) - graph(20, false);
+    println!("condensed graph edge: {repeated} bytes, {own} with its own information");
+    assert!(
+        repeated <= 20 && own <= repeated + INFORMATION_BYTES,
+        "{repeated} {own}"
+    );
+    // The tag is canonical: a repeated information sent in full, or tag 0 on the first
+    // edge, is refused.
+    let sample = &samples()[7];
+    let b = sample.encode().unwrap();
+    // The last edge: key a (1), key b (2), pose (13), tag (1); the first edge's information
+    // just before it.
+    let first_info = b.len() - 17 - INFORMATION_BYTES;
+    let mut full = b[..b.len() - 1].to_vec();
+    full.push(1);
+    full.extend_from_slice(&b[first_info..first_info + INFORMATION_BYTES]);
+    let e = decode_bounded(&full).unwrap_err();
+    assert!(e.to_string().contains("repeats the previous"), "{e}");
+    let mut zero = b.clone();
+    zero[first_info - 1] = 0;
+    let e = decode_bounded(&zero).unwrap_err();
+    assert!(
+        matches!(
+            e,
+            WireError::Invalid {
+                field: "graph information tag",
+                ..
+            }
+        ),
+        "{e}"
+    );
+}
+
 // ---- property tests ----
 
 fn arb_key() -> impl Strategy<Value = u64> {
     (
-        0u8..26,
+        0u8..52,
         prop_oneof![0u64..5000, 0..=doorslam_geometry::key::MAX_INDEX],
     )
         .prop_map(|(r, i)| key(r, i))
@@ -689,7 +807,7 @@ fn arb_information() -> impl Strategy<Value = Information> {
 
 fn arb_descriptors() -> impl Strategy<Value = Descriptors> {
     (
-        0u8..26,
+        0u8..52,
         0u64..100_000,
         0u64..3,
         prop::collection::vec(
@@ -751,7 +869,7 @@ fn arb_camera() -> impl Strategy<Value = VerificationCamera> {
 
 fn arb_body() -> impl Strategy<Value = Body> {
     prop_oneof![
-        (0u8..26).prop_map(|robot| Body::Hello(Hello { robot })),
+        (0u8..52).prop_map(|robot| Body::Hello(Hello { robot })),
         arb_descriptors().prop_map(Body::Descriptors),
         prop::collection::vec((arb_key(), arb_key(), 0f32..2.0), 0..20).prop_map(|m| {
             Body::Matches(Matches {
@@ -803,39 +921,93 @@ fn arb_body() -> impl Strategy<Value = Body> {
                     .collect(),
             })
         }),
-        prop::collection::vec(
-            (
-                arb_key(),
-                arb_key(),
-                arb_pose(),
-                arb_information(),
-                any::<u32>()
-            ),
-            0..5
+        (
+            0u8..52,
+            1u64..u64::MAX,
+            prop::collection::vec((0u64..100_000, arb_key()), 0..4),
+            prop::collection::vec(
+                (
+                    0u64..100_000,
+                    arb_key(),
+                    arb_pose(),
+                    arb_information(),
+                    any::<bool>()
+                ),
+                0..6
+            )
         )
-        .prop_map(|c| {
-            Body::SeparatorGraph(SeparatorGraph {
-                origin: 2,
-                version: 9,
-                edges: c
+            .prop_map(|(origin, version, removed, edges)| {
+                // An update (base below version) when the draw removes something.
+                let base = if removed.is_empty() { 0 } else { version / 2 };
+                let removed = if base == 0 {
+                    vec![]
+                } else {
+                    removed
+                        .into_iter()
+                        .map(|(a, b)| (key(origin, a), b))
+                        .collect()
+                };
+                let mut out: Vec<GraphEdge> = Vec::new();
+                for (a, key_b, pose, information, repeat) in edges {
+                    let information = match out.last() {
+                        Some(l) if repeat || l.information.parts() == information.parts() => {
+                            std::sync::Arc::clone(&l.information)
+                        }
+                        _ => std::sync::Arc::new(information),
+                    };
+                    out.push(GraphEdge {
+                        key_a: key(origin, a),
+                        key_b,
+                        relative: CompactPose::quantize(pose.se3()).unwrap(),
+                        information,
+                    });
+                }
+                Body::SeparatorGraph(SeparatorGraph {
+                    origin,
+                    version,
+                    base,
+                    removed,
+                    edges: out,
+                })
+            }),
+        (
+            prop::collection::btree_set(0u8..52, 1..8),
+            0u64..(1 << 52),
+            any::<u64>()
+        )
+            .prop_map(|(robots, subtree, session)| Body::Route(Route {
+                path: robots.into_iter().rev().collect(),
+                subtree,
+                session,
+            })),
+        (
+            any::<bool>(),
+            any::<u64>(),
+            0u8..52,
+            prop::collection::btree_set(0u64..100_000, 0..10),
+            prop::collection::vec(arb_pose(), 10)
+        )
+            .prop_map(|(request, version, robot, indices, poses)| {
+                if request {
+                    return Body::TeamMap(TeamMap::Request { known: version });
+                }
+                let poses: Vec<(u64, CompactPose)> = indices
                     .into_iter()
-                    .map(
-                        |(key_a, key_b, relative, information, inliers)| LoopClosure {
-                            key_a,
-                            key_b,
-                            relative,
-                            information,
-                            inliers,
-                        },
-                    )
-                    .collect(),
-            })
-        }),
+                    .zip(poses)
+                    .map(|(i, p)| (key(robot, i), CompactPose::quantize(p.se3()).unwrap()))
+                    .collect();
+                Body::TeamMap(TeamMap::Trajectory(Trajectory {
+                    anchor: robot,
+                    version,
+                    total: poses.len() as u64 + version % 3,
+                    poses,
+                }))
+            }),
         (
             any::<u64>(),
             any::<u64>(),
             0u8..3,
-            (any::<bool>(), 0u8..26, 0u8..26),
+            (any::<bool>(), 0u8..52, 0u8..52),
             prop::collection::btree_set(0u64..100_000, 0..10),
             prop::collection::vec((arb_pose(), prop::array::uniform9(-2.0f64..2.0)), 10)
         )
@@ -869,7 +1041,7 @@ fn arb_body() -> impl Strategy<Value = Body> {
             ),
         (
             any::<u64>(),
-            0usize..8,
+            0usize..Kind::ALL.len(),
             0u64..1_000_000,
             prop::collection::vec((1u64..100, 1u64..100), 0..MAX_ACK_RANGES)
         )
@@ -956,7 +1128,7 @@ proptest! {
 
     #[test]
     fn garbage_never_panics(
-        kind in 0u8..9,
+        kind in 0u8..12,
         tail in prop::collection::vec(any::<u8>(), 0..600),
     ) {
         let mut b = vec![WIRE_VERSION, kind];

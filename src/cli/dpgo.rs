@@ -1,7 +1,7 @@
 //! `doorslam dpgo FILE [FILE...]`: distributed pose-graph optimization of a team, played
 //! in-process over an emulated link, compared with the centralized optimum.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
@@ -9,6 +9,9 @@ use clap::Args;
 use doorslam_backend::distributed::condensed::PcmSettings;
 use doorslam_backend::distributed::runner::{run as run_team, RunOptions};
 use doorslam_backend::distributed::{AgentOptions, Method};
+use doorslam_backend::key;
+use doorslam_backend::outliers::labels::unordered;
+use doorslam_backend::outliers::{inject_outliers, read_labels};
 
 use super::pgo::InformationArg;
 
@@ -42,13 +45,39 @@ pub struct DpgoArgs {
     /// centralized reference runs offline PCM with the same settings).
     #[arg(long)]
     pub pcm: Option<f64>,
-    /// Ground truth of the closures (`doorslam sim graph`'s labels.txt: key_a key_b ...
-    /// label, 1 inlier / 0 outlier): report PCM's precision and recall in the loop.
+    /// Ground truth of the closures (`doorslam sim graph`'s labels.txt, or a benchmark's
+    /// inter_robot_labels.txt; 1 inlier / 0 outlier): report PCM's precision and recall in
+    /// the loop.
     #[arg(long)]
     pub labels: Option<PathBuf>,
     /// Smallest clique PCM keeps per robot pair.
     #[arg(long, default_value_t = 2)]
     pub min_clique: usize,
+    /// Plain pairwise PCM: do not check closures left without a clique through 3-robot
+    /// cycles.
+    #[arg(long)]
+    pub no_cycles: bool,
+    /// Add outlier closures (this fraction of all inter-robot closures after adding them),
+    /// as DOOR-SLAM's dataset simulation: translation uniform in [0, 10] m per axis,
+    /// rotation uniform in [-π, π] per Euler angle; the graph's own closures are the
+    /// inliers (labels for --pcm's precision and recall).
+    #[arg(long, value_name = "FRACTION")]
+    pub inject_outliers: Option<f64>,
+    /// Seed of the injected outliers.
+    #[arg(long, default_value_t = 1)]
+    pub outlier_seed: u64,
+    /// Robot ROBOT asks its neighbours for the team map at round N: ROBOT@N (repeatable);
+    /// the bytes count under the kind team_map.
+    #[arg(long, value_name = "ROBOT@ROUND")]
+    pub team_map: Vec<String>,
+    /// Feed each robot's poses N per round (with their odometry, closures once both poses
+    /// exist), as a running back-end is fed, instead of all at the start.
+    #[arg(long, value_name = "N")]
+    pub stream: Option<usize>,
+    /// Send whole condensed graphs instead of updates of the version a neighbour holds
+    /// (to measure what the updates save).
+    #[arg(long)]
+    pub whole_graphs: bool,
     /// Plain Gauss-Seidel / block-coordinate descent, without Nesterov momentum.
     #[arg(long)]
     pub no_momentum: bool,
@@ -78,21 +107,24 @@ pub enum MethodArg {
 
 fn robot_letter(flag: &str, s: &str) -> Result<u8> {
     match s.as_bytes() {
-        [c @ b'a'..=b'z'] => Ok(c - b'a'),
-        _ => bail!("{flag} {s:?}: the robot is one letter a-z, as in the graph's keys"),
+        [c] => key::robot_of_char(*c),
+        _ => None,
     }
+    .with_context(|| {
+        format!("{flag} {s:?}: the robot is one letter a-z or A-Z, as in the graph's keys")
+    })
 }
 
-fn parse_join(v: &[String]) -> Result<BTreeMap<u8, u64>> {
+fn parse_at(flag: &str, v: &[String]) -> Result<BTreeMap<u8, u64>> {
     v.iter()
         .map(|s| {
             let (r, n) = s
                 .split_once('@')
-                .with_context(|| format!("--join {s:?}: expected ROBOT@ROUND, e.g. c@20"))?;
+                .with_context(|| format!("{flag} {s:?}: expected ROBOT@ROUND, e.g. c@20"))?;
             Ok((
-                robot_letter("--join", r)?,
+                robot_letter(flag, r)?,
                 n.parse()
-                    .with_context(|| format!("--join {s:?}: round {n:?} is not a number"))?,
+                    .with_context(|| format!("{flag} {s:?}: round {n:?} is not a number"))?,
             ))
         })
         .collect()
@@ -113,44 +145,6 @@ fn parse_outage(v: &[String]) -> Result<BTreeMap<u8, std::ops::Range<u64>>> {
         .collect()
 }
 
-/// Precision and recall of the kept closures against a labels file.
-fn pcm_quality(path: &std::path::Path, rejected: &[(u64, u64)]) -> Result<(f64, f64)> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let rejected: std::collections::BTreeSet<(u64, u64)> = rejected
-        .iter()
-        .flat_map(|&(a, b)| [(a, b), (b, a)])
-        .collect();
-    let (mut tp, mut fp, mut fne) = (0u64, 0u64, 0u64);
-    for (n, line) in text.lines().enumerate() {
-        if line.starts_with('#') || line.trim().is_empty() {
-            continue;
-        }
-        let f: Vec<&str> = line.split_whitespace().collect();
-        let parse = |i: usize| -> Result<u64> {
-            f.get(i).and_then(|v| v.parse().ok()).with_context(|| {
-                format!(
-                    "{}:{}: field {} is not a number",
-                    path.display(),
-                    n + 1,
-                    i + 1
-                )
-            })
-        };
-        let (a, b, label) = (parse(0)?, parse(1)?, parse(6)?);
-        let kept = !rejected.contains(&(a, b));
-        match (label == 1, kept) {
-            (true, true) => tp += 1,
-            (false, true) => fp += 1,
-            (true, false) => fne += 1,
-            (false, false) => {}
-        }
-    }
-    let precision = tp as f64 / (tp + fp).max(1) as f64;
-    let recall = tp as f64 / (tp + fne).max(1) as f64;
-    Ok((precision, recall))
-}
-
 pub fn run(args: DpgoArgs) -> Result<()> {
     if !(0.0..1.0).contains(&args.drop) {
         bail!("--drop {}: a probability in [0, 1)", args.drop);
@@ -158,7 +152,20 @@ pub fn run(args: DpgoArgs) -> Result<()> {
     if matches!(args.information, InformationArg::AsIs) {
         bail!("--information as-is: the distributed back-end needs positive-definite information (use check or nearest-pd)");
     }
-    let graph = super::pcm::merge_files(&args.files, args.skip_unknown, args.information)?;
+    let mut graph = super::pcm::merge_files(&args.files, args.skip_unknown, args.information)?;
+    let mut labels = match &args.labels {
+        Some(path) => Some(read_labels(path)?),
+        None => None,
+    };
+    if let Some(f) = args.inject_outliers {
+        if args.labels.is_some() {
+            bail!("--inject-outliers labels the closures itself: leave out --labels");
+        }
+        let (g, l) = inject_outliers(&graph, f, args.outlier_seed)
+            .with_context(|| format!("--inject-outliers {f}"))?;
+        graph = g;
+        labels = Some(l);
+    }
     let mut agent = if args.paper_thresholds {
         AgentOptions {
             method: Method::Dgs,
@@ -174,6 +181,10 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         agent.gamma = g;
     }
     agent.momentum = !args.no_momentum;
+    agent.graph_updates = !args.whole_graphs;
+    if args.stream == Some(0) {
+        bail!("--stream 0: at least one pose per round");
+    }
     if let Some(p) = args.pcm {
         if !(p > 0.0 && p < 1.0) {
             bail!("--pcm {p}: a probability strictly between 0 and 1");
@@ -184,6 +195,7 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         agent.pcm = Some(PcmSettings {
             threshold: p,
             min_clique: args.min_clique,
+            cycles: !args.no_cycles,
         });
     }
     agent.method = match args.method {
@@ -195,8 +207,10 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         drop: args.drop,
         seed: args.seed,
         max_rounds: args.max_rounds,
-        join_at: parse_join(&args.join)?,
+        join_at: parse_at("--join", &args.join)?,
         outage: parse_outage(&args.outage)?,
+        team_map: parse_at("--team-map", &args.team_map)?,
+        stream: args.stream,
     };
     let names = args
         .files
@@ -205,10 +219,23 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         .collect::<Vec<_>>()
         .join(", ");
     let r = run_team(&graph, &options).with_context(|| format!("distributed PGO of {names}"))?;
-    let quality = match &args.labels {
-        Some(path) => Some(pcm_quality(path, &r.rejected_keys)?),
-        None => None,
-    };
+    // Kept: every labelled closure PCM did not reject in the loop (the same verdicts on
+    // every robot that solves).
+    let quality = labels.as_ref().map(|l| {
+        let rejected: BTreeSet<(u64, u64)> = r
+            .rejected_keys
+            .iter()
+            .map(|&(a, b)| unordered(a, b))
+            .collect();
+        let kept: BTreeSet<(u64, u64)> = graph
+            .edges()
+            .iter()
+            .map(|e| unordered(graph.keys()[e.i], graph.keys()[e.j]))
+            .filter(|p| !rejected.contains(p))
+            .collect();
+        let q = l.quality(&kept);
+        (q.precision, q.recall)
+    });
     if args.json {
         let mut v = serde_json::to_value(&r)?;
         if let (Some((precision, recall)), Some(o)) = (quality, v.as_object_mut()) {

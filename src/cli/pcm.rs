@@ -5,7 +5,8 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use doorslam_backend::outliers::{Pcm, Scope};
+use doorslam_backend::outliers::labels::unordered;
+use doorslam_backend::outliers::{read_labels, Pcm, Scope};
 use doorslam_backend::{key, write_g2o, EdgeClass, Graph, PoseGraph, ReadOptions, UnknownTags};
 use nalgebra::Isometry3;
 
@@ -33,6 +34,14 @@ pub struct PcmArgs {
     /// checked against anything, so by default (2) it waits for a consistent second one.
     #[arg(long, default_value_t = 2)]
     pub min_clique: usize,
+    /// Plain pairwise PCM: do not check the closures of robot pairs left without an
+    /// accepted clique (a closure alone between two robots) through 3-robot cycles.
+    #[arg(long)]
+    pub no_cycles: bool,
+    /// Ground truth of the closures (`doorslam sim graph`'s labels.txt or a benchmark's
+    /// inter_robot_labels.txt): report precision and recall of the kept closures.
+    #[arg(long)]
+    pub labels: Option<PathBuf>,
     /// Skip lines with unknown tags (with a warning) instead of failing.
     #[arg(long)]
     pub skip_unknown: bool,
@@ -88,6 +97,7 @@ pub fn run(args: PcmArgs) -> Result<()> {
     };
     let mut pcm = Pcm::new(args.threshold, scope).context("--threshold")?;
     pcm.min_clique = args.min_clique;
+    pcm.cycles = !args.no_cycles && !args.intra;
     if let Some(b) = args.time_budget {
         pcm.budget = Some(super::seconds("--time-budget", b, super::MAX_WAIT_S)?);
     }
@@ -98,6 +108,14 @@ pub fn run(args: PcmArgs) -> Result<()> {
         .collect::<Vec<_>>()
         .join(", ");
     let s = pcm.run(&graph).with_context(|| format!("PCM on {names}"))?;
+    let quality = match &args.labels {
+        Some(path) => {
+            let kept: BTreeSet<(u64, u64)> =
+                s.inliers.iter().map(|&(a, b)| unordered(a, b)).collect();
+            Some(read_labels(path)?.quality(&kept))
+        }
+        None => None,
+    };
     if let Some(out) = &args.out {
         let keep: BTreeSet<(u64, u64)> = s
             .inliers
@@ -123,18 +141,21 @@ pub fn run(args: PcmArgs) -> Result<()> {
     }
     if args.json {
         let inliers: Vec<[u64; 2]> = s.inliers.iter().map(|&(a, b)| [a, b]).collect();
-        println!(
-            "{}",
-            serde_json::json!({
-                "closures": s.closures,
-                "duplicates": s.duplicates.len(),
-                "consistent_pairs": s.consistent_pairs,
-                "inliers": inliers,
-                "clique_size": s.clique_size,
-                "exact": s.exact,
-                "time_s": s.time_s,
-            })
-        );
+        let mut v = serde_json::json!({
+            "closures": s.closures,
+            "duplicates": s.duplicates.len(),
+            "consistent_pairs": s.consistent_pairs,
+            "inliers": inliers,
+            "clique_size": s.clique_size,
+            "cycle_confirmed": s.cycle_confirmed,
+            "exact": s.exact,
+            "time_s": s.time_s,
+        });
+        if let (Some(q), Some(o)) = (quality, v.as_object_mut()) {
+            o.insert("precision".into(), q.precision.into());
+            o.insert("recall".into(), q.recall.into());
+        }
+        println!("{v}");
     } else {
         println!(
             "{names}: {} candidate closures{}, {} consistent pairs, kept {} ({}), {:.4} s",
@@ -158,6 +179,18 @@ pub fn run(args: PcmArgs) -> Result<()> {
             .map(|&(a, b)| format!("{}-{}", key::label(a), key::label(b)))
             .collect();
         println!("kept: {}", labels.join(" "));
+        if s.cycle_confirmed > 0 {
+            println!(
+                "{} of them confirmed through 3-robot cycles (no second closure of their pair)",
+                s.cycle_confirmed
+            );
+        }
+        if let Some(q) = quality {
+            println!(
+                "against the labels: precision {:.3}, recall {:.3}",
+                q.precision, q.recall
+            );
+        }
     }
     Ok(())
 }

@@ -7,7 +7,7 @@ use doorslam_backend::GraphError;
 /// How to simulate a team; every field is checked by [`SimConfig::validate`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct SimConfig {
-    /// Number of robots (keys `a`, `b`, ...; at most 26, the multi-robot key alphabet).
+    /// Number of robots (keys `a`, `b`, ...; at most 52, the multi-robot key alphabet 'a'..'z', 'A'..'Z').
     pub robots: usize,
     /// Poses per robot trajectory (at least 2, so there is odometry).
     pub poses_per_robot: usize,
@@ -109,7 +109,7 @@ impl SimConfig {
     /// Checks every field; the error names the first bad one.
     pub fn validate(&self) -> Result<(), SimError> {
         if !(1..=MAX_ROBOTS).contains(&self.robots) {
-            return Err(invalid("robots", self.robots, "must be in 1..=26"));
+            return Err(invalid("robots", self.robots, "must be in 1..=52"));
         }
         if self.poses_per_robot < 2 {
             return Err(invalid(

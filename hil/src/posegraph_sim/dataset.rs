@@ -12,7 +12,11 @@ use super::{SimError, SimulatedTeam};
 
 /// The ground-truth file name of a robot: `gt_a.txt` / `gt_a.tum` for robot 0.
 pub fn truth_file_name(robot: usize, extension: &str) -> String {
-    format!("gt_{}.{extension}", (b'a' + robot as u8) as char)
+    let c = u8::try_from(robot)
+        .ok()
+        .and_then(|r| doorslam_geometry::key::robot_char(r).ok())
+        .unwrap_or('?');
+    format!("gt_{c}.{extension}")
 }
 
 fn io_error(path: &Path) -> impl Fn(std::io::Error) -> SimError + '_ {

@@ -9,7 +9,7 @@ use libfuzzer_sys::arbitrary::{Result, Unstructured};
 use libfuzzer_sys::fuzz_target;
 
 fn key(u: &mut Unstructured<'_>) -> Result<u64> {
-    let robot = u.int_in_range(0..=25u8)?;
+    let robot = u.int_in_range(0..=51u8)?;
     let index = u.int_in_range(0..=doorslam_geometry::key::MAX_INDEX)?;
     Ok(symbol(robot, index).expect("in range"))
 }
@@ -36,12 +36,12 @@ fn information(u: &mut Unstructured<'_>) -> Result<Option<Information>> {
 }
 
 fn body(u: &mut Unstructured<'_>) -> Result<Option<Body>> {
-    Ok(Some(match u.int_in_range(0..=7u8)? {
+    Ok(Some(match u.int_in_range(0..=9u8)? {
         0 => Body::Hello(Hello {
-            robot: u.int_in_range(0..=25)?,
+            robot: u.int_in_range(0..=51)?,
         }),
         1 => {
-            let robot = u.int_in_range(0..=25u8)?;
+            let robot = u.int_in_range(0..=51u8)?;
             let start = u.int_in_range(0..=1u64 << 40)?;
             let mut index = start;
             let mut descriptors = Vec::new();
@@ -115,19 +115,95 @@ fn body(u: &mut Unstructured<'_>) -> Result<Option<Body>> {
             if u.arbitrary()? {
                 Body::LoopClosures(LoopClosures { closures })
             } else {
+                // A separator graph: key a of every edge is the origin's, poses compact,
+                // informations shared as the wire shares them.
+                let origin = u.int_in_range(0..=51u8)?;
+                let version = u.int_in_range(1..=u64::MAX)?;
+                let base = if u.arbitrary()? { 0 } else { u.int_in_range(0..=version - 1)? };
+                let mut removed = Vec::new();
+                if base > 0 {
+                    for _ in 0..u.int_in_range(0..=4)? {
+                        let a = symbol(origin, u.int_in_range(0..=1u64 << 40)?).expect("in range");
+                        removed.push((a, key(u)?));
+                    }
+                }
+                let mut edges: Vec<GraphEdge> = Vec::new();
+                for c in closures {
+                    let key_a = symbol(origin, doorslam_geometry::key::index(c.key_a)).expect("in range");
+                    let Ok(relative) = CompactPose::quantize(c.relative.se3()) else {
+                        return Ok(None);
+                    };
+                    let information = match edges.last() {
+                        Some(l) if l.information.parts() == c.information.parts() => {
+                            std::sync::Arc::clone(&l.information)
+                        }
+                        _ => std::sync::Arc::new(c.information),
+                    };
+                    edges.push(GraphEdge {
+                        key_a,
+                        key_b: c.key_b,
+                        relative,
+                        information,
+                    });
+                }
                 Body::SeparatorGraph(SeparatorGraph {
-                    origin: u.int_in_range(0..=25u8)?,
-                    version: u.arbitrary()?,
-                    edges: closures,
+                    origin,
+                    version,
+                    base,
+                    removed,
+                    edges,
                 })
             }
         }
-        5 => {
+        6 => {
+            let mut path = Vec::new();
+            let mut seen = 0u64;
+            for _ in 0..u.int_in_range(1..=52)? {
+                let r = u.int_in_range(0..=51u8)?;
+                if seen & (1 << r) == 0 {
+                    seen |= 1 << r;
+                    path.push(r);
+                }
+            }
+            Body::Route(Route {
+                path,
+                subtree: u.int_in_range(0..=(1u64 << 52) - 1)?,
+                session: u.arbitrary()?,
+            })
+        }
+        7 => {
+            if u.arbitrary()? {
+                Body::TeamMap(TeamMap::Request {
+                    known: u.arbitrary()?,
+                })
+            } else {
+                let robot = u.int_in_range(0..=51u8)?;
+                let mut index = u.int_in_range(0..=1u64 << 40)?;
+                let mut poses = Vec::new();
+                for _ in 0..u.int_in_range(0..=50)? {
+                    index += u.int_in_range(1..=1000u64)?;
+                    let Some(pose) = pose(u)? else {
+                        return Ok(None);
+                    };
+                    let Ok(c) = CompactPose::quantize(pose.se3()) else {
+                        return Ok(None);
+                    };
+                    poses.push((symbol(robot, index).expect("in range"), c));
+                }
+                Body::TeamMap(TeamMap::Trajectory(Trajectory {
+                    anchor: u.int_in_range(0..=51u8)?,
+                    version: u.arbitrary()?,
+                    total: u.int_in_range(poses.len() as u64..=u64::MAX)?,
+                    poses,
+                }))
+            }
+        }
+        8 => {
             let (optimization, round) = (u.arbitrary()?, u.arbitrary()?);
             let stage = [Stage::Rotation, Stage::Pose, Stage::Refine][u.int_in_range(0..=2usize)?];
             let flags = if u.arbitrary()? { ESTIMATES_CONVERGED } else { 0 };
-            let anchor = u.int_in_range(0..=25u8)?;
-            let robot = u.int_in_range(0..=25u8)?;
+            let anchor = u.int_in_range(0..=51u8)?;
+            let robot = u.int_in_range(0..=51u8)?;
             let mut index = u.int_in_range(0..=1u64 << 40)?;
             let mut estimates = Vec::new();
             for _ in 0..u.int_in_range(0..=50)? {
@@ -165,7 +241,7 @@ fn body(u: &mut Unstructured<'_>) -> Result<Option<Body>> {
         }
         _ => {
             let epoch = u.arbitrary()?;
-            let kind = Kind::ALL[u.int_in_range(0..=7usize)?];
+            let kind = Kind::ALL[u.int_in_range(0..=Kind::ALL.len() - 1)?];
             let next = u.int_in_range(0..=1u64 << 50)?;
             let mut end = next;
             let mut received = Vec::new();

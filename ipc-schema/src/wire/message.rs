@@ -1,5 +1,9 @@
 //! The messages robots exchange, their header, and the encoder/decoder.
 
+use super::backend::{
+    read_graph, read_route, read_team_map, write_graph, write_route, write_team_map, Route,
+    SeparatorGraph, TeamMap,
+};
 use super::codec::{Counter, Reader, Sink};
 use super::types::{
     read_key, write_key, CompactPose, Descriptor, Information, Pose, RelaxedRotation, RobotId,
@@ -29,6 +33,10 @@ pub const MAX_ACK_RANGES: usize = 64;
 /// Longest message a decoder accepts (a full descriptor batch is ~545 kB); checked first.
 pub const MAX_MESSAGE_BYTES: usize = 1 << 20;
 
+/// Why a robot byte is refused: robots are numbered below `key::MAX_ROBOTS` (52).
+const _: () = assert!(doorslam_geometry::key::MAX_ROBOTS == 52);
+pub(crate) const NOT_A_ROBOT: &str = "not a robot number (0..52: 'a'..'z', 'A'..'Z')";
+
 /// Message kinds, the second byte of every message.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 #[repr(u8)]
@@ -41,10 +49,12 @@ pub enum Kind {
     PoseEstimates = 6,
     Ack = 7,
     SeparatorGraph = 8,
+    Route = 9,
+    TeamMap = 10,
 }
 
 impl Kind {
-    pub const ALL: [Kind; 8] = [
+    pub const ALL: [Kind; 10] = [
         Kind::Hello,
         Kind::Descriptors,
         Kind::Matches,
@@ -53,6 +63,8 @@ impl Kind {
         Kind::PoseEstimates,
         Kind::Ack,
         Kind::SeparatorGraph,
+        Kind::Route,
+        Kind::TeamMap,
     ];
 
     /// Name for logs and the bandwidth ledger.
@@ -66,6 +78,8 @@ impl Kind {
             Kind::PoseEstimates => "pose_estimates",
             Kind::Ack => "ack",
             Kind::SeparatorGraph => "separator_graph",
+            Kind::Route => "route",
+            Kind::TeamMap => "team_map",
         }
     }
 
@@ -104,7 +118,7 @@ pub struct Header {
 /// Announces a robot to a peer at the start of a rendezvous.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Hello {
-    /// The robot's number in multi-robot keys (0 = 'a', < 26): the robot byte of every key
+    /// The robot's number in multi-robot keys (0 = 'a', < 52): the robot byte of every key
     /// it sends.
     pub robot: u8,
 }
@@ -260,22 +274,6 @@ pub struct Ack {
     pub received: Vec<core::ops::Range<u64>>,
 }
 
-/// One robot's trajectory condensed onto its separator poses, for the distributed
-/// back-end's condensed refinement: relative-pose constraints between separators (the
-/// robot's odometry compounded between consecutive separators, with the compounded
-/// information) and the inter-robot closures it reports. Forwarded robot to robot, so it
-/// names its `origin` and a `version` (higher replaces lower).
-///
-/// Layout: origin (u8), version (varint), count (varint), then per edge as in
-/// [`LoopClosures`].
-#[derive(Debug, Clone, PartialEq)]
-pub struct SeparatorGraph {
-    /// The robot (0 = 'a') whose trajectory this is.
-    pub origin: u8,
-    pub version: u64,
-    pub edges: Vec<LoopClosure>,
-}
-
 /// A message body: one of the kinds.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Body {
@@ -287,6 +285,8 @@ pub enum Body {
     PoseEstimates(PoseEstimates),
     Ack(Ack),
     SeparatorGraph(SeparatorGraph),
+    Route(Route),
+    TeamMap(TeamMap),
 }
 
 impl Body {
@@ -300,6 +300,8 @@ impl Body {
             Body::PoseEstimates(_) => Kind::PoseEstimates,
             Body::Ack(_) => Kind::Ack,
             Body::SeparatorGraph(_) => Kind::SeparatorGraph,
+            Body::Route(_) => Kind::Route,
+            Body::TeamMap(_) => Kind::TeamMap,
         }
     }
 }
@@ -311,7 +313,12 @@ pub struct Message {
     pub body: Body,
 }
 
-fn check_count(s: &impl Sink, field: &'static str, n: usize, max: usize) -> Result<(), WireError> {
+pub(crate) fn check_count(
+    s: &impl Sink,
+    field: &'static str,
+    n: usize,
+    max: usize,
+) -> Result<(), WireError> {
     if n > max {
         return Err(WireError::TooLong {
             field,
@@ -362,11 +369,7 @@ impl Message {
         match &self.body {
             Body::Hello(h) => {
                 if h.robot >= doorslam_geometry::key::MAX_ROBOTS {
-                    return Err(WireError::invalid(
-                        "hello robot",
-                        s.offset(),
-                        "not below 26",
-                    ));
+                    return Err(WireError::invalid("hello robot", s.offset(), NOT_A_ROBOT));
                 }
                 s.u8(h.robot);
             }
@@ -399,18 +402,9 @@ impl Message {
                 }
             }
             Body::LoopClosures(l) => write_closures(s, &l.closures)?,
-            Body::SeparatorGraph(g) => {
-                if g.origin >= doorslam_geometry::key::MAX_ROBOTS {
-                    return Err(WireError::invalid(
-                        "graph origin",
-                        s.offset(),
-                        "not below 26",
-                    ));
-                }
-                s.u8(g.origin);
-                s.varint(g.version);
-                write_closures(s, &g.edges)?;
-            }
+            Body::SeparatorGraph(g) => write_graph(s, g)?,
+            Body::Route(r) => write_route(s, r)?,
+            Body::TeamMap(m) => write_team_map(s, m)?,
             Body::PoseEstimates(p) => write_estimates(s, p)?,
             Body::Ack(a) => write_ack(s, a)?,
         }
@@ -448,7 +442,7 @@ impl Message {
                 let offset = r.offset();
                 let robot = r.u8("hello robot")?;
                 if robot >= doorslam_geometry::key::MAX_ROBOTS {
-                    return Err(WireError::invalid("hello robot", offset, "not below 26"));
+                    return Err(WireError::invalid("hello robot", offset, NOT_A_ROBOT));
                 }
                 Body::Hello(Hello { robot })
             }
@@ -493,19 +487,9 @@ impl Message {
             Kind::LoopClosures => Body::LoopClosures(LoopClosures {
                 closures: read_closures(&mut r)?,
             }),
-            Kind::SeparatorGraph => {
-                let offset = r.offset();
-                let origin = r.u8("graph origin")?;
-                if origin >= doorslam_geometry::key::MAX_ROBOTS {
-                    return Err(WireError::invalid("graph origin", offset, "not below 26"));
-                }
-                let version = r.varint("graph version")?;
-                Body::SeparatorGraph(SeparatorGraph {
-                    origin,
-                    version,
-                    edges: read_closures(&mut r)?,
-                })
-            }
+            Kind::SeparatorGraph => Body::SeparatorGraph(read_graph(&mut r)?),
+            Kind::Route => Body::Route(read_route(&mut r)?),
+            Kind::TeamMap => Body::TeamMap(read_team_map(&mut r)?),
             Kind::PoseEstimates => Body::PoseEstimates(read_estimates(&mut r)?),
             Kind::Ack => Body::Ack(read_ack(&mut r)?),
         };
@@ -571,7 +555,7 @@ fn write_estimates(s: &mut impl Sink, p: &PoseEstimates) -> Result<(), WireError
         return Err(WireError::invalid(
             "estimate anchor",
             s.offset(),
-            "not below 26",
+            NOT_A_ROBOT,
         ));
     }
     s.u8(p.anchor);
@@ -642,22 +626,28 @@ fn read_estimates(r: &mut Reader<'_>) -> Result<PoseEstimates, WireError> {
     let offset = r.offset();
     let anchor = r.u8("estimate anchor")?;
     if anchor >= doorslam_geometry::key::MAX_ROBOTS {
-        return Err(WireError::invalid(
-            "estimate anchor",
-            offset,
-            "not below 26",
-        ));
+        return Err(WireError::invalid("estimate anchor", offset, NOT_A_ROBOT));
     }
     let offset = r.offset();
     let robot = r.u8("estimate robot")?;
     if robot >= doorslam_geometry::key::MAX_ROBOTS {
-        return Err(WireError::invalid("estimate robot", offset, "not below 26"));
+        return Err(WireError::invalid("estimate robot", offset, NOT_A_ROBOT));
     }
     let min = 1 + match stage {
         Stage::Rotation => RELAXED_ROTATION_BYTES,
         Stage::Pose | Stage::Refine => COMPACT_POSE_MIN_BYTES,
     };
+    let count_at = r.offset();
     let n = r.count("estimate count", MAX_POSE_ESTIMATES, min)?;
+    if n == 0 && robot != 0 {
+        // The robot byte names the keys' robot; without keys it is 0, so the encoding
+        // stays canonical.
+        return Err(WireError::invalid(
+            "estimate robot",
+            count_at - 1,
+            "must be 0 when no estimate follows",
+        ));
+    }
     let mut estimates = Vec::with_capacity(n);
     let mut index: Option<u64> = None;
     for _ in 0..n {
@@ -701,7 +691,7 @@ fn write_descriptors(s: &mut impl Sink, d: &Descriptors) -> Result<(), WireError
         return Err(WireError::invalid(
             "descriptor range",
             s.offset(),
-            "robot not below 26, or not a range of key indices",
+            "robot not a robot number (0..52), or not a range of key indices",
         ));
     }
     s.u8(d.robot);
@@ -745,11 +735,7 @@ fn read_descriptors(r: &mut Reader<'_>) -> Result<Descriptors, WireError> {
     let offset = r.offset();
     let robot = r.u8("descriptor robot")?;
     if robot >= doorslam_geometry::key::MAX_ROBOTS {
-        return Err(WireError::invalid(
-            "descriptor robot",
-            offset,
-            "not below 26",
-        ));
+        return Err(WireError::invalid("descriptor robot", offset, NOT_A_ROBOT));
     }
     let offset = r.offset();
     let start = r.varint("descriptor range")?;
@@ -876,5 +862,8 @@ into_body!(
     VerificationFeatures,
     LoopClosures,
     PoseEstimates,
-    Ack
+    Ack,
+    SeparatorGraph,
+    Route,
+    TeamMap
 );

@@ -25,19 +25,23 @@
 //! disparity, 32-byte ORB descriptor) after a 20-byte camera, so the front-end's packet of
 //! at most 500 features is ≤ 19.1 kB (target ≤ 20 kB; the paper's was 59.5 kB).
 
+mod backend;
 mod codec;
 mod error;
 mod message;
 mod types;
 
+pub use backend::{
+    GraphEdge, Route, SeparatorGraph, TeamMap, Trajectory, MAX_GRAPH_EDGES, MAX_TRAJECTORY_POSES,
+};
 pub use codec::{f16_from_f32, f32_from_f16};
 pub use error::WireError;
 pub use message::Descriptors;
 pub use message::{
     Ack, Body, Estimate, Header, Hello, Kind, LoopClosure, LoopClosures, Match, Matches, Message,
-    PoseEstimate, PoseEstimates, SeparatorGraph, Stage, VerificationFeatures, ESTIMATES_CONVERGED,
-    MAX_ACK_RANGES, MAX_DESCRIPTORS, MAX_FEATURES, MAX_LOOP_CLOSURES, MAX_MATCHES,
-    MAX_MESSAGE_BYTES, MAX_POSE_ESTIMATES, WIRE_VERSION,
+    PoseEstimate, PoseEstimates, Stage, VerificationFeatures, ESTIMATES_CONVERGED, MAX_ACK_RANGES,
+    MAX_DESCRIPTORS, MAX_FEATURES, MAX_LOOP_CLOSURES, MAX_MATCHES, MAX_MESSAGE_BYTES,
+    MAX_POSE_ESTIMATES, WIRE_VERSION,
 };
 pub use types::{
     CompactPose, Descriptor, Information, Pose, QuantizeError, RelaxedRotation, RobotId,

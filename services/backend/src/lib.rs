@@ -8,7 +8,8 @@
 //! - [`solver`], [`init`], [`robust`], [`sparsity`], [`linear`]: Gauss-Newton /
 //!   Levenberg-Marquardt on the sparse normal equations (faer Cholesky, symbolic
 //!   factorization reused), chordal initialization, robust kernels and GNC;
-//! - [`outliers`]: PCM (pairwise consistency + exact maximum clique);
+//! - [`outliers`]: PCM (pairwise consistency + exact maximum clique, singleton closures
+//!   checked through 3-robot cycles), closure labels, injected outliers;
 //! - [`distributed`]: distributed PGO — one agent per robot (two-stage distributed
 //!   Gauss-Seidel, then block-coordinate refinement) and an in-process team runner;
 //! - [`eval`]: trajectory IO (KITTI/TUM/EuRoC), Umeyama alignment, ATE/RPE as evo.
@@ -21,6 +22,7 @@ pub mod init;
 pub mod journal;
 pub mod linear;
 pub mod outliers;
+pub mod rng;
 pub mod robust;
 pub mod service;
 pub mod solver;

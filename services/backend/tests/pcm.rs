@@ -337,3 +337,96 @@ fn readmit_takes_back_an_inlier_and_not_an_outlier() {
     assert_eq!(readmit(&estimate, &candidates, own), vec![1]);
     assert!(readmit(&estimate, &candidates, own * 0.999).is_empty());
 }
+
+/// Three robots on parallel circles (true poses known): odometry and closures exact up to
+/// their stated noise; `closures` lists (robot, index, robot, index) pairs, `outliers`
+/// the same with a wrong measurement (3 m and 40° off).
+fn three_robots(
+    closures: &[(u8, u64, u8, u64)],
+    outliers: &[(u8, u64, u8, u64)],
+) -> PoseGraph<Isometry3<f64>> {
+    let info = nalgebra::Matrix6::from_diagonal(&nalgebra::Vector6::new(
+        1e4, 1e4, 1e4, 100.0, 100.0, 100.0,
+    ));
+    let truth = |r: u8, i: u64| {
+        let a = i as f64 * 0.2;
+        Isometry3::from_parts(
+            Translation3::new(10.0 * a.cos(), 10.0 * a.sin(), r as f64),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, a + 0.1 * r as f64),
+        )
+    };
+    let mut g = PoseGraph::new();
+    for r in 0..3u8 {
+        for i in 0..30 {
+            g.add_pose(key::symbol(r, i).unwrap(), truth(r, i));
+        }
+    }
+    let at = |g: &PoseGraph<Isometry3<f64>>, r: u8, i: u64| g.index_of(key::symbol(r, i).unwrap()).unwrap();
+    for r in 0..3u8 {
+        for i in 0..29 {
+            let z = truth(r, i).inverse() * truth(r, i + 1);
+            let (a, b) = (at(&g, r, i), at(&g, r, i + 1));
+            g.add_edge(a, b, z, info).unwrap();
+        }
+    }
+    let off = Isometry3::from_parts(
+        Translation3::new(3.0, 0.0, 0.0),
+        UnitQuaternion::from_euler_angles(0.0, 0.0, 0.7),
+    );
+    for (list, bad) in [(closures, false), (outliers, true)] {
+        for &(ra, ia, rb, ib) in list {
+            let mut z = truth(ra, ia).inverse() * truth(rb, ib);
+            if bad {
+                z *= off;
+            }
+            let (a, b) = (at(&g, ra, ia), at(&g, rb, ib));
+            g.add_edge(a, b, z, info).unwrap();
+        }
+    }
+    g
+}
+
+#[test]
+fn a_lone_closure_is_checked_through_a_third_robot() {
+    // a-c and b-c have three closures each (pairwise PCM confirms them); a-b has one.
+    let shared = [
+        (0, 3, 2, 4),
+        (0, 10, 2, 11),
+        (0, 20, 2, 19),
+        (1, 5, 2, 5),
+        (1, 12, 2, 14),
+        (1, 25, 2, 24),
+    ];
+    let kept = |g: &PoseGraph<Isometry3<f64>>, min_clique: usize, cycles: bool| {
+        let mut pcm = Pcm::new(0.99, Scope::InterRobot).unwrap();
+        pcm.min_clique = min_clique;
+        pcm.cycles = cycles;
+        let s = pcm.run(g).unwrap();
+        let ab: Vec<(u64, u64)> = s
+            .inliers
+            .iter()
+            .copied()
+            .filter(|(u, v)| key::robot(*u) != Some(2) && key::robot(*v) != Some(2))
+            .collect();
+        (s.clique_size, s.cycle_confirmed, ab)
+    };
+    let lone = (0, 15, 1, 17);
+    let right = three_robots(&[shared.as_slice(), &[lone]].concat(), &[]);
+    // Plain PCM cannot check it: rejected with min clique 2, kept blindly with 1.
+    assert_eq!(kept(&right, 2, false).0, 6);
+    assert_eq!(kept(&right, 1, false).0, 7);
+    // Through c it closes cycles with the confirmed closures: kept.
+    let (size, confirmed, ab) = kept(&right, 2, true);
+    assert_eq!((size, confirmed), (7, 1));
+    assert_eq!(ab, vec![(key::symbol(0, 15).unwrap(), key::symbol(1, 17).unwrap())]);
+    // A wrong lone closure fails those cycles: rejected, where min clique 1 keeps it.
+    let wrong = three_robots(&shared, &[lone]);
+    assert_eq!(kept(&wrong, 1, false).0, 7);
+    assert_eq!(kept(&wrong, 2, true), (6, 0, vec![]));
+    // One right and one wrong between a and b (a clique of one, either): the cycles pick
+    // the right one.
+    let both = three_robots(&[shared.as_slice(), &[lone]].concat(), &[(0, 8, 1, 2)]);
+    let (size, confirmed, ab) = kept(&both, 2, true);
+    assert_eq!((size, confirmed), (7, 1));
+    assert_eq!(ab, vec![(key::symbol(0, 15).unwrap(), key::symbol(1, 17).unwrap())]);
+}

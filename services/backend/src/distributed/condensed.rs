@@ -94,35 +94,46 @@ pub(crate) fn condense(
             source,
         })
     };
-    // Compose along the chain from each separator to the next.
-    let mut from: Option<(usize, SE3, TangentMatrix)> = None;
+    // Compose along the chain from each separator to the next: (start, z, Σ, the step's
+    // own information while the chain is one step long).
+    type Chain = (usize, SE3, TangentMatrix, Option<TangentMatrix>);
+    let mut from: Option<Chain> = None;
     for p in 0..keys.len() {
         if seps.contains(&p) {
-            if let Some((s, z, cov)) = from.take() {
+            if let Some((s, z, cov, single)) = from.take() {
                 if s != p {
-                    let information = information_from_covariance(&cov, 6).map_err(|source| {
-                        DpgoError::Information {
-                            from: key::label(keys[s]),
-                            to: key::label(keys[p]),
-                            source,
+                    // One step is the odometry edge itself: its information exactly (so
+                    // it repeats between edges, and the wire sends it once).
+                    let information = match single {
+                        Some(info) => info,
+                        None => {
+                            let i = information_from_covariance(&cov, 6).map_err(|source| {
+                                DpgoError::Information {
+                                    from: key::label(keys[s]),
+                                    to: key::label(keys[p]),
+                                    source,
+                                }
+                            })?;
+                            (i + i.transpose()) * 0.5
                         }
-                    })?;
+                    };
                     out.push(CondensedEdge {
                         a: keys[s],
                         b: keys[p],
                         z,
-                        information: (information + information.transpose()) * 0.5,
+                        information,
                     });
                 }
             }
-            from = Some((p, SE3::identity(), TangentMatrix::zeros()));
+            from = Some((p, SE3::identity(), TangentMatrix::zeros(), None));
         }
         // Extend to p + 1 if the chain continues.
         match (from.take(), forward(edges, p)) {
-            (Some((s, z, cov)), Some((step, info))) => {
+            (Some((s, z, cov, _)), Some((step, info))) => {
                 let ad = step.inverse().adjoint();
                 let cov = ad * cov * ad.transpose() + invert(&info, keys[p])?;
-                from = Some((s, z.compose(&step), cov));
+                let single = (s == p).then_some(info);
+                from = Some((s, z.compose(&step), cov, single));
             }
             _ => from = None,
         }
@@ -150,11 +161,13 @@ pub(crate) fn condense(
     Ok(out)
 }
 
-/// PCM settings inside the loop: probability threshold and smallest clique per robot pair.
+/// PCM settings inside the loop: probability threshold, smallest clique per robot pair,
+/// and whether closures left without a clique are checked through 3-robot cycles.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PcmSettings {
     pub threshold: f64,
     pub min_clique: usize,
+    pub cycles: bool,
 }
 
 /// PCM on the separator graph: the inter-robot closures it keeps, as (key, key) both ways.
@@ -165,10 +178,10 @@ pub struct PcmSettings {
 /// Separators are renumbered per robot (the k-th separator gets index k) so the super-edges
 /// are "odometry" to PCM; every robot runs the same check on the same graph.
 pub(crate) fn pcm_inliers(
-    graphs: &BTreeMap<u8, Vec<CondensedEdge>>,
+    graphs: &BTreeMap<u8, &[CondensedEdge]>,
     settings: PcmSettings,
 ) -> Result<BTreeSet<(u64, u64)>, DpgoError> {
-    let mut all: Vec<&CondensedEdge> = graphs.values().flatten().collect();
+    let mut all: Vec<&CondensedEdge> = graphs.values().copied().flatten().collect();
     all.sort_by_key(|e| (e.a, e.b));
     let keys: BTreeSet<u64> = all.iter().flat_map(|e| [e.a, e.b]).collect();
     let mut rank: BTreeMap<u64, u64> = BTreeMap::new();
@@ -208,6 +221,7 @@ pub(crate) fn pcm_inliers(
     let mut pcm = Pcm::new(settings.threshold, Scope::InterRobot)
         .map_err(|e| DpgoError::Pcm(e.to_string()))?;
     pcm.min_clique = settings.min_clique;
+    pcm.cycles = settings.cycles;
     let s = pcm.run(&g).map_err(|e| DpgoError::Pcm(e.to_string()))?;
     Ok(s.inliers
         .iter()
@@ -226,7 +240,7 @@ pub(crate) type Solved = (BTreeMap<u64, SE3>, Vec<(u64, u64)>);
 
 /// Returns the separator estimates and the closures PCM rejected.
 pub(crate) fn solve_separators(
-    graphs: &BTreeMap<u8, Vec<CondensedEdge>>,
+    graphs: &BTreeMap<u8, &[CondensedEdge]>,
     mine: u64,
     pcm: Option<PcmSettings>,
 ) -> Result<Solved, DpgoError> {
@@ -236,6 +250,7 @@ pub(crate) fn solve_separators(
     let mut rejected = Vec::new();
     let mut all: Vec<&CondensedEdge> = graphs
         .values()
+        .copied()
         .flatten()
         .filter(|e| {
             let keep = !inter(e) || inliers.as_ref().is_none_or(|i| i.contains(&(e.a, e.b)));
@@ -363,7 +378,7 @@ pub(crate) fn check_graph(origin: u8, edges: &[CondensedEdge]) -> Result<(), Str
                 "edge {} -> {} does not belong in robot {}'s graph",
                 key::label(e.a),
                 key::label(e.b),
-                (b'a' + origin) as char
+                key::robot_char(origin).unwrap_or('?')
             ));
         }
     }

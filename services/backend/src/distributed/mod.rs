@@ -49,10 +49,17 @@
 //! epoch and sequence.
 
 pub mod condensed;
+mod link;
 pub mod local;
+mod map;
 pub mod runner;
+mod team;
+
+pub use map::TeamTrajectory;
 
 use std::collections::{BTreeMap, BTreeSet};
+
+use link::{Arrival, Received};
 
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
@@ -62,8 +69,8 @@ use crate::solver::{SolveError, SolverOptions};
 use doorslam_geometry::information::{check_information, InformationCheck, InformationError};
 use doorslam_geometry::{key, LieGroup, TangentMatrix, SE3};
 use doorslam_ipc::wire::{
-    Ack, Body, CompactPose, Estimate, Header, Kind, Message, PoseEstimate, PoseEstimates,
-    QuantizeError, RelaxedRotation, RobotId, Stage, ESTIMATES_CONVERGED, MAX_POSE_ESTIMATES,
+    Body, CompactPose, Estimate, Header, Kind, Message, PoseEstimate, PoseEstimates, QuantizeError,
+    RelaxedRotation, RobotId, Stage, ESTIMATES_CONVERGED, MAX_POSE_ESTIMATES,
 };
 
 use local::{Fixed, OwnClosure, OwnEdge};
@@ -144,6 +151,9 @@ pub struct AgentOptions {
     /// PCM on the team's inter-robot closures before each solve (condensed method; no
     /// extra messages), or none (closures were checked before).
     pub pcm: Option<condensed::PcmSettings>,
+    /// Condensed method: send a neighbour that holds an older version of a graph only the
+    /// key pairs that changed (false: always the whole graph, to measure the difference).
+    pub graph_updates: bool,
 }
 
 /// The distributed solver.
@@ -176,6 +186,7 @@ impl Default for AgentOptions {
             momentum: true,
             method: Method::default(),
             pcm: None,
+            graph_updates: true,
         }
     }
 }
@@ -212,79 +223,10 @@ struct Neighbor {
     confirmed: Sent,
     /// The neighbour's epoch our confirmed state refers to (a restart forgets it).
     confirmed_epoch: Option<u64>,
-    /// Condensed graphs: what the neighbour holds (origin → version), what is in flight
-    /// (sequence → step sent, origin, version), and the receiving side's sequences.
-    graphs_held: BTreeMap<u8, u64>,
-    graphs_in_flight: BTreeMap<u64, (u64, u8, u64)>,
-    graph_sequence: u64,
-    graph_received: Received,
-}
-
-/// What arrived of one kind from a neighbour, by its epoch and sequence.
-#[derive(Debug, Default)]
-struct Received {
-    epoch: Option<u64>,
-    /// Every sequence below this was received; `above` holds those received beyond it.
-    next: u64,
-    above: BTreeSet<u64>,
-    ack_due: bool,
-}
-
-/// How a message's epoch relates to the neighbour's we know.
-#[derive(Debug, PartialEq, Eq)]
-enum Arrival {
-    /// The current epoch (or the first one heard).
-    Current,
-    /// A higher epoch: the neighbour restarted and lost what we sent it.
-    Restarted,
-    /// An older epoch: stale, not recorded.
-    Stale,
-}
-
-impl Received {
-    /// Records a message (epoch, sequence); an acknowledgement becomes due unless stale.
-    fn arrive(&mut self, epoch: u64, sequence: u64) -> Arrival {
-        let arrival = match self.epoch {
-            Some(e) if epoch < e => return Arrival::Stale,
-            Some(e) if epoch > e => Arrival::Restarted,
-            _ => Arrival::Current,
-        };
-        if self.epoch != Some(epoch) {
-            *self = Self {
-                epoch: Some(epoch),
-                ..Self::default()
-            };
-        }
-        if sequence >= self.next {
-            self.above.insert(sequence);
-            while self.above.remove(&self.next) {
-                self.next += 1;
-            }
-        }
-        self.ack_due = true;
-        arrival
-    }
-
-    /// The acknowledgement due, of `kind`, once: our epoch and ack sequence in the header.
-    fn take_ack(
-        &mut self,
-        id: &RobotId,
-        own_epoch: u64,
-        sequence: u64,
-        kind: Kind,
-    ) -> Option<Message> {
-        let epoch = self.epoch.filter(|_| self.ack_due)?;
-        self.ack_due = false;
-        Some(ack_message(
-            id,
-            own_epoch,
-            sequence,
-            kind,
-            epoch,
-            self.next,
-            &self.above,
-        ))
-    }
+    /// The condensed method's exchange with this neighbour.
+    team: team::TeamLink,
+    /// The team-map exchange with this neighbour.
+    map: map::MapLink,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -357,15 +299,13 @@ pub struct Agent {
     solution_relaxed: Vec<Matrix3<f64>>,
     solution: Vec<SE3>,
     momentum_steps: u64,
-    /// Condensed graphs known (origin → version, edges), this robot's own included, and
-    /// the versions the current estimate was solved with.
-    graphs: BTreeMap<u8, (u64, Vec<condensed::CondensedEdge>)>,
+    /// The condensed method's state ([`team`]); the own graph must be condensed again.
+    team: team::TeamState,
     own_graph_dirty: bool,
-    own_graph_counter: u64,
-    solved_with: BTreeMap<u8, u64>,
-    /// (neighbour, origin) → step since which the neighbour lacks the origin's graph
-    /// while another robot was expected to forward it (see `graph_messages_for`).
-    graph_due_since: BTreeMap<(u8, u8), u64>,
+    /// The neighbours' trajectories that arrived for the team map.
+    team_map: BTreeMap<u8, TeamTrajectory>,
+    /// Incremented whenever the estimate changes (the team map's version).
+    estimate_version: u64,
     /// Inter-robot closures (key, key) PCM left out of the last solve.
     rejected: Vec<(u64, u64)>,
     stats: AgentStats,
@@ -400,11 +340,13 @@ impl Agent {
             solution_relaxed: Vec::new(),
             solution: Vec::new(),
             momentum_steps: 0,
-            graphs: BTreeMap::new(),
+            team: team::TeamState {
+                path: vec![robot],
+                ..team::TeamState::default()
+            },
             own_graph_dirty: true,
-            own_graph_counter: 0,
-            solved_with: BTreeMap::new(),
-            graph_due_since: BTreeMap::new(),
+            team_map: BTreeMap::new(),
+            estimate_version: 0,
             rejected: Vec::new(),
             stats: AgentStats::default(),
         }
@@ -441,9 +383,16 @@ impl Agent {
                 });
             }
         }
+        // Once in the team frame, a new pose starts where its odometry puts it from the
+        // last pose's team estimate.
+        let start = match (self.anchored, self.poses.last(), self.initial.last()) {
+            (true, Some(x), Some(x0)) => x.compose(&x0.inverse().compose(&initial)),
+            _ => initial,
+        };
         self.index.insert(k, self.keys.len());
         self.keys.push(k);
-        self.poses.push(initial);
+        self.poses.push(start);
+        self.team.interior_dirty = true;
         self.initial.push(initial);
         self.relaxed
             .push(initial.rotation.to_rotation_matrix().into_inner());
@@ -500,6 +449,7 @@ impl Agent {
         });
         self.stage_converged = false;
         self.own_graph_dirty = true;
+        self.team.interior_dirty = true;
         Ok(())
     }
 
@@ -555,6 +505,7 @@ impl Agent {
         self.neighbors.entry(neighbor).or_default();
         self.stage_converged = false;
         self.own_graph_dirty = true;
+        self.team.interior_dirty = true;
         // A new neighbour may have a lower id than our anchor.
         self.update_anchor();
         Ok(())
@@ -576,8 +527,8 @@ impl Agent {
             n.confirmed = Sent::default();
             n.confirmed_epoch = None;
             n.in_flight.clear();
-            n.graphs_held.clear();
-            n.graphs_in_flight.clear();
+            n.team.link_restarted();
+            n.map.link_restarted();
         }
     }
 
@@ -618,6 +569,13 @@ impl Agent {
     /// Converged: refinement finished here and at every present neighbour of the same
     /// frame, and every neighbour holds our latest separators.
     pub fn converged(&self) -> bool {
+        let maps_idle = self
+            .neighbors
+            .values()
+            .all(|n| !n.present || (n.map.idle() && !n.map.ack_due()));
+        if !maps_idle {
+            return false;
+        }
         if self.options.method == Method::Condensed {
             return self.condensed_converged();
         }
@@ -779,6 +737,7 @@ impl Agent {
             return Ok(false);
         }
         self.stats.updates += 1;
+        self.estimate_version += 1;
         self.anchored = true;
         self.stage_steps += 1;
         let threshold = match self.stage {
@@ -1008,9 +967,19 @@ impl Agent {
     /// and our separator estimates that moved beyond the send threshold from what it
     /// holds (plus our state if it changed), resending what was lost.
     pub fn messages_for(&mut self, neighbor: u8) -> Result<Vec<Message>, DpgoError> {
-        if self.options.method == Method::Condensed {
-            return self.graph_messages_for(neighbor);
+        let mut out = match self.options.method {
+            Method::Condensed => self.team_messages_for(neighbor)?,
+            Method::Dgs => self.dgs_messages_for(neighbor)?,
+        };
+        out.extend(self.map_messages_for(neighbor)?);
+        for m in &out {
+            self.stats.messages_sent += 1;
+            self.stats.bytes_sent += m.encoded_len() as u64;
         }
+        Ok(out)
+    }
+
+    fn dgs_messages_for(&mut self, neighbor: u8) -> Result<Vec<Message>, DpgoError> {
         let step = self.stats.steps;
         let separators = self.separators_for(neighbor);
         let flags = self.flags();
@@ -1133,10 +1102,6 @@ impl Agent {
         if let Some(last) = n.next_sequence.checked_sub(1) {
             n.in_flight.insert(last, (step, carried));
         }
-        for m in &out {
-            self.stats.messages_sent += 1;
-            self.stats.bytes_sent += m.encoded_len() as u64;
-        }
         Ok(out)
     }
 
@@ -1145,6 +1110,32 @@ impl Agent {
     /// is refused with an error and changes nothing; stale or out-of-order messages are
     /// ignored (`Ok(false)`).
     pub fn receive(&mut self, neighbor: u8, message: &Message) -> Result<bool, DpgoError> {
+        match &message.body {
+            Body::TeamMap(m) => {
+                if !self.neighbors.contains_key(&neighbor) {
+                    self.stats.refused += 1;
+                    return Err(DpgoError::BadMessage {
+                        from: neighbor,
+                        reason: "no closure with this robot".into(),
+                    });
+                }
+                return self.map_receive(neighbor, &message.header, m);
+            }
+            Body::Ack(a) if a.kind == Kind::TeamMap => {
+                if !self.neighbors.contains_key(&neighbor) {
+                    self.stats.refused += 1;
+                    return Err(DpgoError::BadMessage {
+                        from: neighbor,
+                        reason: "no closure with this robot".into(),
+                    });
+                }
+                return self.map_ack(neighbor, a);
+            }
+            _ if self.options.method == Method::Condensed => {
+                return self.team_receive(neighbor, message);
+            }
+            _ => {}
+        }
         let refuse = |reason: String| DpgoError::BadMessage {
             from: neighbor,
             reason,
@@ -1161,10 +1152,6 @@ impl Agent {
         };
         let h = &message.header;
         match &message.body {
-            Body::SeparatorGraph(g) => self.receive_graph(neighbor, h, g),
-            Body::Ack(a) if a.kind == Kind::SeparatorGraph => {
-                self.receive_graph_ack(neighbor, h, a)
-            }
             Body::Ack(a) => {
                 if a.kind != Kind::PoseEstimates {
                     self.stats.refused += 1;
@@ -1268,390 +1255,6 @@ impl Agent {
             }
         }
     }
-}
-
-/// The condensed refinement's side of the agent (see [`condensed`]).
-impl Agent {
-    /// Graph versions: the epoch in the high bits, so a restarted robot's graphs
-    /// replace its old ones.
-    fn own_version(&self) -> u64 {
-        (self.epoch << 32) | (self.own_graph_counter & 0xffff_ffff)
-    }
-
-    fn step_condensed(&mut self) -> Result<bool, DpgoError> {
-        self.stats.steps += 1;
-        self.stage = Stage::Refine;
-        if self.keys.is_empty() {
-            return Ok(false);
-        }
-        if self.own_graph_dirty {
-            let edges = condensed::condense(self.robot, &self.keys, &self.edges, &self.closures)?;
-            self.own_graph_counter += 1;
-            let v = self.own_version();
-            self.graphs.insert(self.robot, (v, edges));
-            self.own_graph_dirty = false;
-        }
-        let versions: BTreeMap<u8, u64> = self.graphs.iter().map(|(o, (v, _))| (*o, *v)).collect();
-        if versions == self.solved_with {
-            self.stage_converged = true;
-            return Ok(false);
-        }
-        let graphs: BTreeMap<u8, Vec<condensed::CondensedEdge>> = self
-            .graphs
-            .iter()
-            .map(|(o, (_, e))| (*o, e.clone()))
-            .collect();
-        let (separators, rejected) =
-            condensed::solve_separators(&graphs, self.keys[0], self.options.pcm)?;
-        self.stats.rejected_closures = rejected.len() as u64;
-        self.rejected = rejected;
-        let fixed: Vec<Option<SE3>> = self
-            .keys
-            .iter()
-            .map(|k| separators.get(k).copied())
-            .collect();
-        self.poses = condensed::solve_interior(&self.poses, &self.edges, &fixed)?;
-        // The team frame is the lowest robot's first pose at the identity.
-        self.anchor = separators
-            .keys()
-            .next()
-            .and_then(|k| key::robot(*k))
-            .unwrap_or(self.robot);
-        self.anchored = true;
-        self.in_frame = vec![true; self.keys.len()];
-        self.solved_with = versions;
-        self.stage_converged = true;
-        self.stats.updates += 1;
-        Ok(true)
-    }
-
-    fn condensed_converged(&self) -> bool {
-        let versions: BTreeMap<u8, u64> = self.graphs.iter().map(|(o, (v, _))| (*o, *v)).collect();
-        let partners = self.partners();
-        !self.own_graph_dirty
-            && versions == self.solved_with
-            && self.neighbors.iter().all(|(&id, n)| {
-                !n.present
-                    || (n.graphs_in_flight.is_empty()
-                        && !n.graph_received.ack_due
-                        && self
-                            .graphs
-                            .iter()
-                            .filter(|(o, _)| {
-                                **o != id && designated(self.robot, id, **o, &partners)
-                            })
-                            .all(|(o, (v, _))| n.graphs_held.get(o).is_some_and(|h| h >= v)))
-            })
-    }
-
-    /// Robot pairs that share closures, from every graph held and our own closures.
-    fn partners(&self) -> BTreeMap<u8, BTreeSet<u8>> {
-        let mut p: BTreeMap<u8, BTreeSet<u8>> = BTreeMap::new();
-        let mut link = |a: u8, b: u8| {
-            p.entry(a).or_default().insert(b);
-            p.entry(b).or_default().insert(a);
-        };
-        for (_, edges) in self.graphs.values() {
-            for e in edges {
-                if let (Some(a), Some(b)) = (key::robot(e.a), key::robot(e.b)) {
-                    if a != b {
-                        link(a, b);
-                    }
-                }
-            }
-        }
-        for c in &self.closures {
-            if let Some(o) = key::robot(c.other) {
-                link(self.robot, o);
-            }
-        }
-        p
-    }
-
-    /// Whether this robot is the one to forward `origin`'s graph to `neighbor`: not if
-    /// the origin shares closures with it (it sends its own), nor if a lower robot that
-    /// shares closures with both does; unless the neighbour has lacked it for `patience`
-    /// steps (that robot may be out of range).
-    fn forwards(
-        &mut self,
-        neighbor: u8,
-        origin: u8,
-        partners: &BTreeMap<u8, BTreeSet<u8>>,
-    ) -> bool {
-        if designated(self.robot, neighbor, origin, partners) {
-            return true;
-        }
-        let step = self.stats.steps;
-        let since = *self
-            .graph_due_since
-            .entry((neighbor, origin))
-            .or_insert(step);
-        // Three times the patience: the designated robot may just be slower than us.
-        step.saturating_sub(since) > 3 * self.options.patience
-    }
-
-    fn graph_messages_for(&mut self, neighbor: u8) -> Result<Vec<Message>, DpgoError> {
-        let step = self.stats.steps;
-        let resend_after = self.options.resend_after;
-        let partners = self.partners();
-        let due: Vec<u8> = {
-            let held = self.neighbors.get(&neighbor).map(|n| &n.graphs_held);
-            self.graphs
-                .iter()
-                .filter(|(o, (v, _))| {
-                    **o != neighbor && held.and_then(|h| h.get(o)).is_none_or(|h| h < v)
-                })
-                .map(|(o, _)| *o)
-                .collect()
-        };
-        let mut allowed = BTreeSet::new();
-        for origin in due {
-            if self.forwards(neighbor, origin, &partners) {
-                allowed.insert(origin);
-            }
-        }
-        let mut out = Vec::new();
-        let Some(n) = self.neighbors.get_mut(&neighbor) else {
-            return Ok(out);
-        };
-        if let Some(ack) =
-            n.graph_received
-                .take_ack(&self.id, self.epoch, n.ack_sequence, Kind::SeparatorGraph)
-        {
-            n.ack_sequence += 1;
-            out.push(ack);
-        }
-        let lost: Vec<u64> = n
-            .graphs_in_flight
-            .iter()
-            .filter(|(_, (sent, _, _))| step.saturating_sub(*sent) >= resend_after)
-            .map(|(&s, _)| s)
-            .collect();
-        for s in lost {
-            n.graphs_in_flight.remove(&s);
-            self.stats.resent += 1;
-        }
-        for (&origin, (version, edges)) in &self.graphs {
-            if origin == neighbor || !allowed.contains(&origin) {
-                continue;
-            }
-            let held = n.graphs_held.get(&origin).copied();
-            let flying = n
-                .graphs_in_flight
-                .values()
-                .filter(|(_, o, _)| *o == origin)
-                .map(|(_, _, v)| *v)
-                .max();
-            if held.max(flying).is_some_and(|h| h >= *version) {
-                continue;
-            }
-            if edges.len() > doorslam_ipc::wire::MAX_LOOP_CLOSURES {
-                return Err(DpgoError::BadMessage {
-                    from: origin,
-                    reason: format!(
-                        "condensed graph of {} edges: more than one message carries ({})",
-                        edges.len(),
-                        doorslam_ipc::wire::MAX_LOOP_CLOSURES
-                    ),
-                });
-            }
-            let mut wire_edges = Vec::with_capacity(edges.len());
-            for e in edges {
-                let quantize = |reason: String| DpgoError::BadMessage {
-                    from: origin,
-                    reason: format!("edge {} -> {}: {reason}", key::label(e.a), key::label(e.b)),
-                };
-                wire_edges.push(doorslam_ipc::wire::LoopClosure {
-                    key_a: e.a,
-                    key_b: e.b,
-                    relative: doorslam_ipc::wire::Pose::from_se3(&e.z)
-                        .map_err(|x| quantize(x.to_string()))?,
-                    information: doorslam_ipc::wire::Information::from_matrix(&e.information)
-                        .map_err(|x| quantize(x.to_string()))?,
-                    inliers: 0,
-                });
-            }
-            let sequence = n.graph_sequence;
-            n.graph_sequence += 1;
-            n.graphs_in_flight
-                .insert(sequence, (step, origin, *version));
-            out.push(Message::new(
-                Header {
-                    sender: self.id.clone(),
-                    epoch: self.epoch,
-                    sequence,
-                },
-                Body::SeparatorGraph(doorslam_ipc::wire::SeparatorGraph {
-                    origin,
-                    version: *version,
-                    edges: wire_edges,
-                }),
-            ));
-        }
-        for m in &out {
-            self.stats.messages_sent += 1;
-            self.stats.bytes_sent += m.encoded_len() as u64;
-        }
-        Ok(out)
-    }
-
-    fn receive_graph(
-        &mut self,
-        neighbor: u8,
-        h: &Header,
-        g: &doorslam_ipc::wire::SeparatorGraph,
-    ) -> Result<bool, DpgoError> {
-        let edges: Vec<condensed::CondensedEdge> = g
-            .edges
-            .iter()
-            .map(|e| condensed::CondensedEdge {
-                a: e.key_a,
-                b: e.key_b,
-                z: *e.relative.se3(),
-                information: *e.information.matrix(),
-            })
-            .collect();
-        if let Err(reason) = condensed::check_graph(g.origin, &edges) {
-            self.stats.refused += 1;
-            return Err(DpgoError::BadMessage {
-                from: neighbor,
-                reason,
-            });
-        }
-        if g.origin == self.robot {
-            self.stats.refused += 1;
-            return Err(DpgoError::BadMessage {
-                from: neighbor,
-                reason: "a graph of this robot's own trajectory".into(),
-            });
-        }
-        let Some(n) = self.neighbors.get_mut(&neighbor) else {
-            self.stats.refused += 1;
-            return Err(DpgoError::BadMessage {
-                from: neighbor,
-                reason: "no closure with this robot".into(),
-            });
-        };
-        match n.graph_received.arrive(h.epoch, h.sequence) {
-            Arrival::Stale => {
-                self.stats.ignored_stale += 1;
-                return Ok(false);
-            }
-            Arrival::Restarted => {
-                n.graphs_held.clear();
-                n.graphs_in_flight.clear();
-            }
-            Arrival::Current => {}
-        }
-        // The sender holds it: no need to send it back.
-        let held = n.graphs_held.entry(g.origin).or_insert(0);
-        *held = (*held).max(g.version);
-        let newer = self
-            .graphs
-            .get(&g.origin)
-            .is_none_or(|(v, _)| g.version > *v);
-        if !newer {
-            self.stats.ignored_stale += 1;
-            return Ok(false);
-        }
-        self.graphs.insert(g.origin, (g.version, edges));
-        Ok(true)
-    }
-
-    fn receive_graph_ack(&mut self, neighbor: u8, h: &Header, a: &Ack) -> Result<bool, DpgoError> {
-        let Some(n) = self.neighbors.get_mut(&neighbor) else {
-            self.stats.refused += 1;
-            return Err(DpgoError::BadMessage {
-                from: neighbor,
-                reason: "no closure with this robot".into(),
-            });
-        };
-        if a.epoch != self.epoch {
-            self.stats.ignored_stale += 1;
-            return Ok(false);
-        }
-        if n.confirmed_epoch != Some(h.epoch) {
-            n.graphs_held.clear();
-            n.confirmed_epoch = Some(h.epoch);
-        }
-        let acked = |s: u64| s < a.next || a.received.iter().any(|r| r.contains(&s));
-        let highest = n
-            .graphs_in_flight
-            .keys()
-            .copied()
-            .filter(|&s| acked(s))
-            .max();
-        let seqs: Vec<u64> = n.graphs_in_flight.keys().copied().collect();
-        for s in seqs {
-            if acked(s) {
-                if let Some((_, origin, version)) = n.graphs_in_flight.remove(&s) {
-                    let held = n.graphs_held.entry(origin).or_insert(0);
-                    *held = (*held).max(version);
-                    self.graph_due_since.remove(&(neighbor, origin));
-                }
-            } else if highest.is_some_and(|hi| s < hi) {
-                n.graphs_in_flight.remove(&s);
-                self.stats.resent += 1;
-            }
-        }
-        Ok(true)
-    }
-}
-
-/// Whether `me` is the robot that sends `origin`'s graph to `neighbor`: the origin itself;
-/// nobody else if the origin shares closures with the neighbour; else the lowest robot
-/// sharing closures with both (or any holder when no such robot is known: more hops).
-fn designated(me: u8, neighbor: u8, origin: u8, partners: &BTreeMap<u8, BTreeSet<u8>>) -> bool {
-    if origin == me {
-        return true;
-    }
-    let empty = BTreeSet::new();
-    let of = |r: u8| partners.get(&r).unwrap_or(&empty);
-    if of(origin).contains(&neighbor) {
-        return false;
-    }
-    of(origin)
-        .intersection(of(neighbor))
-        .copied()
-        .filter(|r| *r != neighbor && *r != origin)
-        .min()
-        .is_none_or(|r| r == me)
-}
-
-fn ack_message(
-    id: &RobotId,
-    own_epoch: u64,
-    sequence: u64,
-    kind: Kind,
-    epoch: u64,
-    next: u64,
-    received: &BTreeSet<u64>,
-) -> Message {
-    // All below `next` received; then the ranges above it.
-    let mut ranges: Vec<std::ops::Range<u64>> = Vec::new();
-    for &s in received.range(next + 1..) {
-        match ranges.last_mut() {
-            Some(r) if r.end == s => r.end += 1,
-            _ => ranges.push(s..s + 1),
-        }
-    }
-    // The newest ranges matter most for loss detection; the wire bounds their number.
-    let skip = ranges
-        .len()
-        .saturating_sub(doorslam_ipc::wire::MAX_ACK_RANGES);
-    Message::new(
-        Header {
-            sender: id.clone(),
-            epoch: own_epoch,
-            sequence,
-        },
-        Body::Ack(Ack {
-            epoch,
-            kind,
-            next,
-            received: ranges.split_off(skip),
-        }),
-    )
 }
 
 fn matrix_rows(m: &Matrix3<f64>) -> [[f64; 3]; 3] {

@@ -13,8 +13,11 @@ use std::time::Instant;
 use doorslam_geometry::{key, LieGroup, TangentMatrix, SE3};
 use doorslam_ipc::wire::{
     Body, CompactPose, Estimate, Header, Information, LoopClosure, LoopClosures, Message, Pose,
-    PoseEstimate, PoseEstimates, RobotId, Stage, MAX_LOOP_CLOSURES, MAX_POSE_ESTIMATES,
+    PoseEstimate, PoseEstimates, RobotId, SeparatorGraph, Stage, MAX_GRAPH_EDGES,
+    MAX_LOOP_CLOSURES, MAX_POSE_ESTIMATES,
 };
+
+use super::condensed::CondensedEdge;
 
 use super::{Agent, AgentOptions, DpgoError};
 use crate::graph::{EdgeClass, PoseGraph};
@@ -36,6 +39,13 @@ pub struct RunOptions {
     pub join_at: BTreeMap<u8, u64>,
     /// Robot → rounds during which it is out of range of everyone.
     pub outage: BTreeMap<u8, Range<u64>>,
+    /// Robot → round at which it asks its neighbours for the team map (the run goes on
+    /// until the replies are in).
+    pub team_map: BTreeMap<u8, u64>,
+    /// Keyframes per round: each robot's poses arrive this many per round (with their
+    /// odometry, and a closure once both its poses exist), as a back-end is fed while it
+    /// runs; `None`: every pose from the start.
+    pub stream: Option<usize>,
 }
 
 impl Default for RunOptions {
@@ -47,6 +57,8 @@ impl Default for RunOptions {
             max_rounds: 500,
             join_at: BTreeMap::new(),
             outage: BTreeMap::new(),
+            team_map: BTreeMap::new(),
+            stream: None,
         }
     }
 }
@@ -62,9 +74,19 @@ pub struct RunReport {
     /// Encoded bytes of every message sent, delivered or not.
     pub bytes: u64,
     /// Sending every robot's graph to the lowest robot and the result back, in the same
-    /// encoding (closures/odometry as `LoopClosures`, results as compact `PoseEstimates`).
+    /// encoding: each robot's odometry and closures as one `SeparatorGraph` (the encoding
+    /// the condensed graphs travel in), the results as compact `PoseEstimates`.
     pub bytes_centralized: u64,
     pub bytes_ratio: f64,
+    /// The same when robots talk only to robots they share closures with (as the agents
+    /// do): each robot's graph and results relayed over its fewest hops to the lowest.
+    pub bytes_centralized_relayed: u64,
+    /// The same as `bytes_centralized` with the graphs as `LoopClosures` (82 B per edge:
+    /// the baseline before the compact graph encoding).
+    pub bytes_centralized_loop_closures: u64,
+    /// Bytes and messages per wire kind (`Kind::name`).
+    pub bytes_by_kind: BTreeMap<String, u64>,
+    pub messages_by_kind: BTreeMap<String, u64>,
     pub centralized_chi2: f64,
     pub distributed_chi2: f64,
     /// (distributed − centralized) / centralized.
@@ -84,30 +106,22 @@ pub struct RunReport {
     pub closures: usize,
     pub rejected_distributed: u64,
     pub rejected_centralized: usize,
+    /// Poses of other robots in the team maps that arrived (requests of `team_map`).
+    pub team_map_poses: usize,
     /// The closures PCM rejected in the loop, by the lowest robot (the others run the same
     /// check on the same graph).
     #[serde(skip)]
     pub rejected_keys: Vec<(u64, u64)>,
 }
 
-/// Deterministic loss draws (splitmix64): runs repeat exactly.
-struct Draws(u64);
-
-impl Draws {
-    fn next_f64(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^= z >> 31;
-        (z >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
-
 /// The robot ids on the wire: the key letter.
+/// (Robot ids are lower case: robots past 'z' are `r26`, `r27`, ...)
 fn robot_id(robot: u8) -> Result<RobotId, DpgoError> {
-    let c = (b'a' + robot) as char;
-    RobotId::new(&c.to_string()).map_err(|e| DpgoError::BadMessage {
+    let id = match key::robot_char(robot) {
+        Ok(c) if c.is_ascii_lowercase() => c.to_string(),
+        _ => format!("r{robot}"),
+    };
+    RobotId::new(&id).map_err(|e| DpgoError::BadMessage {
         from: robot,
         reason: e.to_string(),
     })
@@ -125,6 +139,46 @@ struct RobotPart {
 
 fn robot_of(k: u64) -> Result<u8, DpgoError> {
     key::robot(k).ok_or_else(|| DpgoError::NoRobot(key::label(k)))
+}
+
+/// What a robot's agent was fed so far.
+#[derive(Debug, Default)]
+struct Feed {
+    poses: usize,
+    last: Option<u64>,
+    edges: Vec<bool>,
+}
+
+impl Feed {
+    /// Adds the next `stream` poses (all if `None`) and the own edges whose poses exist.
+    fn feed(
+        &mut self,
+        a: &mut Agent,
+        part: &RobotPart,
+        stream: Option<usize>,
+    ) -> Result<(), DpgoError> {
+        let upto = stream.map_or(part.poses.len(), |n| (self.poses + n).min(part.poses.len()));
+        for (k, x) in &part.poses[self.poses..upto] {
+            a.add_pose(*k, *x)?;
+            self.last = Some(*k);
+        }
+        self.poses = upto;
+        self.edges.resize(part.odometry.len(), false);
+        let last = self.last;
+        let has = |k: u64| last.is_some_and(|l| k <= l);
+        for ((i, j, z, info), added) in part.odometry.iter().zip(self.edges.iter_mut()) {
+            if !*added && has(*i) && has(*j) {
+                a.add_odometry(*i, *j, *z, *info)?;
+                *added = true;
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether pose `k` of this robot was added (poses come in key order).
+    fn has(&self, k: u64) -> bool {
+        self.last.is_some_and(|l| k <= l)
+    }
 }
 
 /// Splits a merged team graph by the robot of each key. Each robot's initial estimate is
@@ -177,13 +231,60 @@ fn split(graph: &PoseGraph<SE3>) -> Result<(BTreeMap<u8, RobotPart>, Vec<Edge>),
     Ok((parts, closures))
 }
 
-/// Bytes of the centralized alternative in the same encoding: every robot but the lowest
-/// sends its edges (odometry and the closures no lower robot sends), the lowest sends
-/// each its optimized poses back.
-fn centralized_bytes(parts: &BTreeMap<u8, RobotPart>, closures: &[Edge]) -> Result<u64, DpgoError> {
-    let Some(&central) = parts.keys().next() else {
-        return Ok(0);
+/// The edge `z ≈ X_b⁻¹ X_a` of `z ≈ X_a⁻¹ X_b`: `z⁻¹`, information `Ad(z⁻¹)ᵀ Ω Ad(z⁻¹)`.
+fn reversed(z: &SE3, information: &TangentMatrix) -> (SE3, TangentMatrix) {
+    let ad = z.inverse().adjoint();
+    let r = ad.transpose() * information * ad;
+    (z.inverse(), (r + r.transpose()) * 0.5)
+}
+
+/// Bytes of the centralized alternative.
+struct Centralized {
+    /// Graphs as `SeparatorGraph`, results as `PoseEstimates`.
+    direct: u64,
+    /// The same, each robot's share multiplied by its hops to the central robot.
+    relayed: u64,
+    /// Graphs as `LoopClosures`.
+    loop_closures: u64,
+}
+
+/// Hops from `from` to every robot over robots that share closures (who can meet).
+fn hops(from: u8, closures: &[Edge]) -> Result<BTreeMap<u8, u64>, DpgoError> {
+    let mut adjacent: BTreeMap<u8, BTreeSet<u8>> = BTreeMap::new();
+    for c in closures {
+        let (a, b) = (robot_of(c.0)?, robot_of(c.1)?);
+        adjacent.entry(a).or_default().insert(b);
+        adjacent.entry(b).or_default().insert(a);
+    }
+    let mut hops = BTreeMap::from([(from, 0)]);
+    let mut queue = std::collections::VecDeque::from([from]);
+    while let Some(r) = queue.pop_front() {
+        let h = hops[&r];
+        for &n in adjacent.get(&r).into_iter().flatten() {
+            if let std::collections::btree_map::Entry::Vacant(e) = hops.entry(n) {
+                e.insert(h + 1);
+                queue.push_back(n);
+            }
+        }
+    }
+    Ok(hops)
+}
+
+/// Every robot but the lowest sends its edges (odometry and the closures no lower robot
+/// sends), the lowest sends each its optimized poses back.
+fn centralized_bytes(
+    parts: &BTreeMap<u8, RobotPart>,
+    closures: &[Edge],
+) -> Result<Centralized, DpgoError> {
+    let mut c = Centralized {
+        direct: 0,
+        relayed: 0,
+        loop_closures: 0,
     };
+    let Some(&central) = parts.keys().next() else {
+        return Ok(c);
+    };
+    let hops = hops(central, closures)?;
     let quantize = |k: u64, e: doorslam_ipc::wire::QuantizeError| DpgoError::Quantize {
         key: key::label(k),
         source: e,
@@ -203,15 +304,22 @@ fn centralized_bytes(parts: &BTreeMap<u8, RobotPart>, closures: &[Edge]) -> Resu
             inliers: 0,
         })
     };
-    let mut total = 0u64;
     for (&r, part) in parts {
         if r == central {
             continue;
         }
+        let (mut total, mut total_closures) = (0u64, 0u64);
         let id = robot_id(r)?;
         let mut edges = Vec::new();
+        let mut own: Vec<CondensedEdge> = Vec::new();
         for (a, b, z, info) in &part.odometry {
             edges.push(edge(*a, *b, z, info)?);
+            own.push(CondensedEdge {
+                a: *a,
+                b: *b,
+                z: *z,
+                information: *info,
+            });
         }
         for (a, b, z, info) in closures {
             // The central robot has its own closures; others are sent once, by the lower
@@ -219,7 +327,35 @@ fn centralized_bytes(parts: &BTreeMap<u8, RobotPart>, closures: &[Edge]) -> Resu
             let (ra, rb) = (robot_of(*a)?, robot_of(*b)?);
             if ra != central && rb != central && ra.min(rb) == r {
                 edges.push(edge(*a, *b, z, info)?);
+                let (a, b, (z, information)) = if ra == r {
+                    (*a, *b, (*z, *info))
+                } else {
+                    (*b, *a, reversed(z, info))
+                };
+                own.push(CondensedEdge {
+                    a,
+                    b,
+                    z,
+                    information,
+                });
             }
+        }
+        for (n, chunk) in own.chunks(MAX_GRAPH_EDGES).enumerate() {
+            let m = Message::new(
+                Header {
+                    sender: id.clone(),
+                    epoch: 0,
+                    sequence: n as u64,
+                },
+                Body::SeparatorGraph(SeparatorGraph {
+                    origin: r,
+                    version: 1,
+                    base: 0,
+                    removed: Vec::new(),
+                    edges: super::team::wire_edges(r, chunk)?,
+                }),
+            );
+            total += m.encoded_len() as u64;
         }
         for (n, chunk) in edges.chunks(MAX_LOOP_CLOSURES).enumerate() {
             let m = Message::new(
@@ -232,7 +368,7 @@ fn centralized_bytes(parts: &BTreeMap<u8, RobotPart>, closures: &[Edge]) -> Resu
                     closures: chunk.to_vec(),
                 }),
             );
-            total += m.encoded_len() as u64;
+            total_closures += m.encoded_len() as u64;
         }
         let estimates: Vec<PoseEstimate> = part
             .poses
@@ -261,16 +397,22 @@ fn centralized_bytes(parts: &BTreeMap<u8, RobotPart>, closures: &[Edge]) -> Resu
                 }),
             );
             total += m.encoded_len() as u64;
+            total_closures += m.encoded_len() as u64;
         }
+        // A robot no closure connects would be met directly.
+        c.direct += total;
+        c.relayed += total * hops.get(&r).copied().unwrap_or(1).max(1);
+        c.loop_closures += total_closures;
     }
-    Ok(total)
+    Ok(c)
 }
 
 /// Plays the team of a merged multi-robot graph and compares with the centralized optimum.
 pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, DpgoError> {
     let start = Instant::now();
     let (parts, closures) = split(graph)?;
-    let bytes_centralized = centralized_bytes(&parts, &closures)?;
+    let centralized = centralized_bytes(&parts, &closures)?;
+    let bytes_centralized = centralized.direct;
     // The centralized reference, same gauge: the lowest robot's first pose, at its value.
     let mut central = graph.clone();
     let anchor_key = parts
@@ -287,10 +429,12 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
     // The centralized oracle on the same closures: offline PCM on the merged graph with
     // the agents' settings.
     let mut rejected_centralized = 0usize;
+    let mut oracle_kept: Option<BTreeSet<(u64, u64)>> = None;
     if let Some(p) = options.agent.pcm {
         let mut pcm =
             Pcm::new(p.threshold, Scope::InterRobot).map_err(|e| DpgoError::Pcm(e.to_string()))?;
         pcm.min_clique = p.min_clique;
+        pcm.cycles = p.cycles;
         let summary = pcm
             .run(&central)
             .map_err(|e| DpgoError::Pcm(e.to_string()))?;
@@ -312,38 +456,47 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
             classes[n - 1] != EdgeClass::InterLoop || keep.contains(&(keys[e.i], keys[e.j]))
         });
         rejected_centralized = before - central.edges().len();
+        oracle_kept = Some(keep);
     }
     let anchor = central.index_of(anchor_key).unwrap_or_default();
     SE3::chordal(&mut central, anchor)?;
     optimize(&mut central, anchor, &SolverOptions::default())?;
     let centralized_chi2 = central.chi2();
 
-    // The agents.
+    // The agents, fed all at once or `stream` poses per round.
     let mut agents: BTreeMap<u8, Agent> = BTreeMap::new();
-    for (&r, part) in &parts {
-        let mut a = Agent::new(r, robot_id(r)?, 1, options.agent.clone());
-        for (k, x) in &part.poses {
-            a.add_pose(*k, *x)?;
-        }
-        for (i, j, z, info) in &part.odometry {
-            a.add_odometry(*i, *j, *z, *info)?;
-        }
-        agents.insert(r, a);
+    for &r in parts.keys() {
+        agents.insert(r, Agent::new(r, robot_id(r)?, 1, options.agent.clone()));
     }
+    let mut feeds: BTreeMap<u8, Feed> = parts.keys().map(|&r| (r, Feed::default())).collect();
     let joined = |r: u8, round: u64| options.join_at.get(&r).is_none_or(|&j| round >= j);
     let in_range = |r: u8, round: u64| options.outage.get(&r).is_none_or(|o| !o.contains(&round));
     let mut closures_added = vec![false; closures.len()];
-    let mut draws = Draws(options.seed);
+    // Deterministic loss draws: runs repeat exactly.
+    let mut draws = crate::rng::SplitMix64::new(options.seed);
     let (mut messages, mut bytes, mut dropped, mut refused) = (0u64, 0u64, 0u64, 0u64);
+    let mut bytes_by_kind: BTreeMap<String, u64> = BTreeMap::new();
+    let mut messages_by_kind: BTreeMap<String, u64> = BTreeMap::new();
     let mut iterations = 0;
     let mut converged = false;
     let robots: Vec<u8> = agents.keys().copied().collect();
     for round in 0..options.max_rounds {
         iterations = round + 1;
-        // Closures appear when both robots have joined (they met).
+        for (&r, part) in &parts {
+            if let (Some(a), Some(f)) = (agents.get_mut(&r), feeds.get_mut(&r)) {
+                f.feed(a, part, options.stream)?;
+            }
+        }
+        let exists = |k: u64| -> bool {
+            robot_of(k)
+                .ok()
+                .and_then(|r| feeds.get(&r))
+                .is_some_and(|f| f.has(k))
+        };
+        // Closures appear when both robots have joined (they met) and both poses exist.
         for (c, added) in closures.iter().zip(closures_added.iter_mut()) {
             let (ra, rb) = (robot_of(c.0)?, robot_of(c.1)?);
-            if !*added && joined(ra, round) && joined(rb, round) {
+            if !*added && joined(ra, round) && joined(rb, round) && exists(c.0) && exists(c.1) {
                 for r in [ra, rb] {
                     if let Some(a) = agents.get_mut(&r) {
                         a.add_closure(c.0, c.1, c.2, c.3)?;
@@ -358,6 +511,13 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
                 let present = joined(*n, round) && in_range(*n, round) && in_range(r, round);
                 if let Some(a) = agents.get_mut(&r) {
                     a.set_present(*n, present);
+                }
+            }
+        }
+        for (&r, &at) in &options.team_map {
+            if at == round {
+                if let Some(a) = agents.get_mut(&r) {
+                    a.request_team_map();
                 }
             }
         }
@@ -382,6 +542,9 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
                     })?;
                     messages += 1;
                     bytes += bytes_m.len() as u64;
+                    *bytes_by_kind.entry(m.kind().name().into()).or_default() +=
+                        bytes_m.len() as u64;
+                    *messages_by_kind.entry(m.kind().name().into()).or_default() += 1;
                     if draws.next_f64() < options.drop {
                         dropped += 1;
                         continue;
@@ -400,8 +563,14 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
         }
         let all_joined = robots.iter().all(|&r| joined(r, round));
         let outage_over = options.outage.values().all(|o| round >= o.end);
+        let maps_asked = options.team_map.values().all(|&at| round >= at);
+        let all_fed = parts
+            .iter()
+            .all(|(r, p)| feeds.get(r).is_some_and(|f| f.poses == p.poses.len()));
         if all_joined
+            && all_fed
             && outage_over
+            && maps_asked
             && closures_added.iter().all(|a| *a)
             && agents
                 .values()
@@ -409,6 +578,21 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
         {
             converged = true;
             break;
+        }
+    }
+    if let (Some(kept), Some(solver)) = (&oracle_kept, agents.values().find(|a| a.solves_team())) {
+        let rejected: BTreeSet<(u64, u64)> = solver.rejected_closures().iter().copied().collect();
+        for c in &closures {
+            let in_loop = !rejected.contains(&(c.0, c.1)) && !rejected.contains(&(c.1, c.0));
+            let oracle = kept.contains(&(c.0, c.1));
+            if in_loop != oracle {
+                tracing::debug!(a = key::label(c.0), b = key::label(c.1), in_loop, oracle, "PCM verdicts differ");
+            }
+        }
+    }
+    if !converged {
+        for a in agents.values().filter(|a| !a.converged()) {
+            tracing::debug!(robot = a.robot(), anchored = a.anchored(), "not converged");
         }
     }
     // The team's estimate against the centralized one, in the centralized frame (the
@@ -453,6 +637,10 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
         bytes,
         bytes_centralized,
         bytes_ratio: bytes as f64 / bytes_centralized.max(1) as f64,
+        bytes_centralized_relayed: centralized.relayed,
+        bytes_centralized_loop_closures: centralized.loop_closures,
+        bytes_by_kind,
+        messages_by_kind,
         centralized_chi2,
         distributed_chi2,
         chi2_gap: (distributed_chi2 - centralized_chi2) / centralized_chi2.max(f64::MIN_POSITIVE),
@@ -468,9 +656,15 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
         closures: closures.len(),
         rejected_distributed: stats.iter().map(|s| s.rejected_closures).max().unwrap_or(0),
         rejected_centralized,
+        team_map_poses: agents
+            .values()
+            .flat_map(|a| a.team_map().values())
+            .map(|t| t.poses.len())
+            .sum(),
         rejected_keys: agents
             .values()
-            .next()
+            .find(|a| a.solves_team())
+            .or_else(|| agents.values().next())
             .map(|a| a.rejected_closures().to_vec())
             .unwrap_or_default(),
     })

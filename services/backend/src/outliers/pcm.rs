@@ -259,6 +259,10 @@ impl PairProblem {
     pub fn exact(&self) -> bool {
         self.exact
     }
+    /// Whether closures `a` and `b` (indices into `closures`) are pairwise consistent.
+    pub fn consistent(&self, a: usize, b: usize) -> bool {
+        self.graph.has_edge(a, b)
+    }
     pub fn consistent_pairs(&self) -> usize {
         self.graph.edge_count()
     }
@@ -283,6 +287,9 @@ pub struct Pcm {
     /// robots is consistent with itself by definition and proves nothing; it is kept
     /// waiting until a second, consistent one arrives).
     pub min_clique: usize,
+    /// Check the closures of pairs left without an accepted clique through 3-robot cycles
+    /// ([`super::cycles`]); off by default (plain PCM).
+    pub cycles: bool,
     pub problems: BTreeMap<(Option<u8>, Option<u8>), PairProblem>,
 }
 
@@ -320,6 +327,8 @@ pub struct PcmSummary {
     /// Kept closures as (key, key), in the direction they were given.
     pub inliers: Vec<(u64, u64)>,
     pub clique_size: usize,
+    /// Of the kept closures, those confirmed through 3-robot cycles ([`Pcm::cycles`]).
+    pub cycle_confirmed: usize,
     pub exact: bool,
     pub time_s: f64,
 }
@@ -333,6 +342,7 @@ impl Pcm {
             scope,
             budget: None,
             min_clique: 2,
+            cycles: false,
             problems: BTreeMap::new(),
         })
     }
@@ -393,7 +403,12 @@ impl Pcm {
                 Scope::IntraRobot => "the graph has no loop closures between non-consecutive poses of one robot".into(),
             }));
         }
-        for (pair, closures) in new {
+        for (pair, mut closures) in new {
+            // In key order, whatever the order of the graph's edges: the maximum clique
+            // search breaks ties between cliques of one size by vertex order, so the same
+            // closures give the same verdicts wherever PCM runs (offline on a merged
+            // file, or inside the distributed loop on the condensed graphs).
+            closures.sort_by_key(|c| (key::index(c.u), key::index(c.v)));
             self.problems
                 .entry(pair)
                 .or_default()
@@ -405,6 +420,7 @@ impl Pcm {
             consistent_pairs: 0,
             inliers: Vec::new(),
             clique_size: 0,
+            cycle_confirmed: 0,
             exact: true,
             time_s: 0.0,
         };
@@ -418,6 +434,21 @@ impl Pcm {
                     .iter()
                     .map(|&k| (p.closures[k].u, p.closures[k].v)),
             );
+        }
+        if self.cycles && self.scope == Scope::InterRobot {
+            let added = super::cycles::confirm_through_cycles(
+                &self.problems,
+                &odo,
+                self.gamma,
+                self.min_clique,
+            );
+            for (pair, kept) in added {
+                let p = &self.problems[&pair];
+                s.cycle_confirmed += kept.len();
+                s.clique_size += kept.len();
+                s.inliers
+                    .extend(kept.iter().map(|&k| (p.closures[k].u, p.closures[k].v)));
+            }
         }
         s.time_s = start.elapsed().as_secs_f64();
         Ok(s)

@@ -393,7 +393,7 @@ mod tests {
         let ok = check_closure(&lc).unwrap();
         assert_eq!(key::label(ok.key_b), "c4");
         let mut bad = lc;
-        bad.robot_b = 26;
+        bad.robot_b = 52;
         assert_eq!(field_of(check_closure(&bad)), "robot_b");
         let mut bad = lc;
         bad.robot_b = 0;

@@ -44,7 +44,7 @@ pub enum ServiceError {
     Ipc(#[from] doorslam_ipc::IpcError),
     #[error(transparent)]
     Journal(#[from] JournalError),
-    #[error("robot index {0} is outside 0..26 (multi-robot keys use 'a' + index)")]
+    #[error("robot index {0} is outside 0..52 (multi-robot keys use 'a'..'z', then 'A'..'Z')")]
     Robot(u32),
     #[error("backend config: {0}")]
     Config(String),
@@ -78,6 +78,11 @@ pub struct BackendSection {
     pub pcm_threshold: f64,
     #[serde(default = "default_min_clique")]
     pub pcm_min_clique: usize,
+    /// Check a closure left alone between two robots through 3-robot cycles over closures
+    /// already kept (recall on singletons without admitting outliers); false: plain
+    /// pairwise PCM.
+    #[serde(default = "default_true")]
+    pub pcm_cycles: bool,
     /// Write `odometry.tum`, `team_estimate.tum` and `backend.json` into the state folder
     /// this often (seconds; 0 = only when stopping).
     #[serde(default = "default_write_every_s")]
@@ -111,6 +116,7 @@ impl Default for BackendSection {
             distributed: true,
             pcm_threshold: default_pcm_threshold(),
             pcm_min_clique: default_min_clique(),
+            pcm_cycles: true,
             write_every_s: default_write_every_s(),
         }
     }
@@ -154,6 +160,7 @@ impl BackendSection {
                 pcm: Some(PcmSettings {
                     threshold: self.pcm_threshold,
                     min_clique: self.pcm_min_clique,
+                    cycles: self.pcm_cycles,
                 }),
                 ..AgentOptions::default()
             }),

@@ -114,7 +114,7 @@ pub struct BackendState {
 }
 
 impl BackendState {
-    /// An empty graph for robot `robot_index` (below 26: keys are `'a' + index`).
+    /// An empty graph for robot `robot_index` (below 52: keys are `key::robot_char(index)`).
     pub fn new(robot_index: u32, optimize_every: usize) -> Option<Self> {
         let robot = key::robot_index(robot_index).ok()?;
         Some(Self {

@@ -1,0 +1,1076 @@
+//! The condensed method's protocol: one solver per connected team.
+//!
+//! Each robot condenses its trajectory onto its separators ([`condensed`]). Instead of
+//! every robot receiving every condensed graph (N − 1 copies of each), the graphs travel
+//! once, hop by hop, to one robot — the lowest robot of the connected team, which already
+//! fixes the team's frame — that solves the separator graph (with PCM inside the loop) and
+//! sends each robot back only its own separators' estimates, along the same hops. Every
+//! robot then solves its own interior poses with its separators fixed, so each ends with
+//! its own trajectory in the team frame.
+//!
+//! **Routes** (`Route` messages, path vector): a robot's route is `[root, …, itself]`,
+//! the best among its own (`[itself]`) and, for each neighbour in range whose route does
+//! not already pass through it, that route extended by itself — lowest root first, then
+//! fewest hops, then the lowest next hop. It tells every neighbour in range when it
+//! changes; to its parent (the next hop) it adds its subtree (itself and the robots that
+//! route through it). Carrying the whole path prevents loops and counting to infinity when
+//! the solver leaves: robots that lose their route to it fall back on other neighbours,
+//! and the next lowest robot of the team takes over.
+//!
+//! **Graphs upwards** (`SeparatorGraph`): a robot sends its parent the graphs of its
+//! subtree that the parent does not hold at their latest version, as an update of the
+//! version the parent holds (only the key pairs that changed) or whole. A relay keeps what
+//! it forwards, so when the route changes, the new parent gets them from it.
+//!
+//! **Estimates downwards** (`PoseEstimates`, one message per robot: `optimization` = the
+//! version of that robot's graph the solve used, `round` = the solver's solve count,
+//! stage `Refine`): the solver sends each child the separators of the robots of the
+//! child's subtree that moved beyond `send_pose` from what the child holds (all of them
+//! when the frame changed), and relays forward them down.
+//!
+//! Every message is acknowledged per kind, resent when lost; a neighbour that restarts
+//! (a higher epoch) is taken to hold nothing. A robot out of range keeps its last
+//! separators; the solver keeps the graphs of robots that left.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::sync::Arc;
+
+use doorslam_geometry::{key, SE3};
+use doorslam_ipc::wire::{
+    Ack, Body, CompactPose, Estimate, GraphEdge, Header, Information, Kind, Message, PoseEstimate,
+    PoseEstimates, Route, SeparatorGraph, Stage, MAX_GRAPH_EDGES, MAX_POSE_ESTIMATES,
+};
+
+use super::condensed::{self, CondensedEdge};
+use super::link::{Arrival, Outbox, Received};
+use super::{pose_distance, Agent, DpgoError};
+
+/// A condensed graph as held: its version and edges (shared, never copied).
+#[derive(Debug, Clone)]
+pub(crate) struct Held {
+    pub version: u64,
+    pub edges: Arc<Vec<CondensedEdge>>,
+}
+
+/// One robot's separator estimates from a solve.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct Solution {
+    /// The robot whose first pose fixes the frame.
+    pub anchor: u8,
+    /// The version of the robot's graph the solve used.
+    pub version: u64,
+    pub round: u64,
+    pub separators: BTreeMap<u64, SE3>,
+}
+
+impl Solution {
+    /// Applies what a message carried: another frame replaces, the same frame merges.
+    fn apply(held: &mut Option<Solution>, carried: &Solution) {
+        match held {
+            Some(h) if h.anchor == carried.anchor => {
+                h.version = carried.version;
+                h.round = carried.round;
+                h.separators
+                    .extend(carried.separators.iter().map(|(k, x)| (*k, *x)));
+            }
+            _ => *held = Some(carried.clone()),
+        }
+    }
+}
+
+/// The condensed method's state of one robot.
+#[derive(Debug, Default)]
+pub(crate) struct TeamState {
+    /// Graphs held (origin → graph): this robot's own, those forwarded through it, and at
+    /// the solver every robot's of the team.
+    pub graphs: BTreeMap<u8, Held>,
+    pub own_counter: u64,
+    /// `[root, …, this robot]`.
+    pub path: Vec<u8>,
+    /// Incremented when the parent changes (see `Route::session`).
+    pub session: u64,
+    /// The step at which the path last changed.
+    pub path_changed_at: u64,
+    /// Solver: the graph versions the last solve used, and the solve count.
+    pub solved_with: BTreeMap<u8, u64>,
+    pub rounds: u64,
+    /// Solver: steps waited for the graphs of robots that route to it, and whether a
+    /// graph changed since the last step.
+    pub waiting: u64,
+    pub fresh: bool,
+    /// Separator estimates per robot: at the solver every robot's it solved, elsewhere
+    /// those of this robot and of its subtree, as received from the parent.
+    pub solutions: BTreeMap<u8, Solution>,
+    /// The own interior must be solved again (new poses, edges or separators).
+    pub interior_dirty: bool,
+}
+
+/// What a robot knows of one neighbour for the condensed method.
+#[derive(Debug, Default)]
+pub(crate) struct TeamLink {
+    /// The neighbour's route (its latest, by sequence).
+    route: Option<Route>,
+    route_sequence: Option<u64>,
+    route_rx: Received,
+    route_out: Outbox<Route>,
+    /// The route the neighbour holds from us (acknowledged).
+    route_held: Option<Route>,
+    graph_rx: Received,
+    /// In flight: (origin, graph as the message leaves the neighbour holding it).
+    graph_out: Outbox<(u8, Held)>,
+    /// Graphs the neighbour is known to hold (acknowledged).
+    graphs_held: BTreeMap<u8, Held>,
+    est_rx: Received,
+    /// In flight: (robot, what the message carried).
+    est_out: Outbox<(u8, Solution)>,
+    /// Estimates the neighbour is known to hold (acknowledged).
+    est_held: BTreeMap<u8, Solution>,
+    /// The neighbour's epoch our knowledge of what it holds refers to.
+    held_epoch: Option<u64>,
+}
+
+impl TeamLink {
+    /// The neighbour restarted: it holds nothing we sent, and its old route is gone.
+    fn forget(&mut self) {
+        self.route = None;
+        self.route_sequence = None;
+        self.route_out.clear();
+        self.route_held = None;
+        self.graph_out.clear();
+        self.graphs_held.clear();
+        self.est_out.clear();
+        self.est_held.clear();
+    }
+
+    /// The transport between us restarted (not the neighbour): what was in flight may be
+    /// gone and what it was known to hold is no longer certain, so everything is sent
+    /// again. The neighbour's route stands (it arrived; the neighbour did not restart).
+    pub(crate) fn link_restarted(&mut self) {
+        self.route_out.clear();
+        self.route_held = None;
+        self.graph_out.clear();
+        self.graphs_held.clear();
+        self.est_out.clear();
+        self.est_held.clear();
+    }
+
+    /// Messages whose fate is unknown (no acknowledgement in time, or overtaken): they may
+    /// have arrived with their acknowledgement lost, so what the neighbour holds of what
+    /// they carried is uncertain, and it is sent again in full — never on a guess (an
+    /// update of a version the neighbour may not hold would never apply; a route or
+    /// separator the neighbour may hold newer would never be corrected).
+    fn lost(&mut self, routes: usize, graphs: &[(u8, Held)], estimates: &[(u8, Solution)]) {
+        if routes > 0 {
+            self.route_held = None;
+        }
+        for (o, _) in graphs {
+            self.graph_out.forget(|(x, _)| x == o);
+            self.graphs_held.remove(o);
+        }
+        for (r, carried) in estimates {
+            match self.est_held.get_mut(r) {
+                Some(h) if h.anchor == carried.anchor => {
+                    for k in carried.separators.keys() {
+                        h.separators.remove(k);
+                    }
+                    if h.version != carried.version {
+                        h.version = 0;
+                    }
+                }
+                _ => {
+                    self.est_held.remove(r);
+                }
+            }
+        }
+    }
+
+    fn acks_due(&self) -> bool {
+        self.route_rx.ack_due || self.graph_rx.ack_due || self.est_rx.ack_due
+    }
+
+    /// The route as the neighbour holds it or will once what is in flight arrives.
+    fn route_view(&self) -> Option<&Route> {
+        self.route_out.items().last().or(self.route_held.as_ref())
+    }
+
+    fn graph_view(&self, origin: u8) -> Option<&Held> {
+        self.graph_out
+            .items()
+            .filter(|(o, _)| *o == origin)
+            .map(|(_, h)| h)
+            .last()
+            .or(self.graphs_held.get(&origin))
+    }
+
+    fn estimates_view(&self, robot: u8) -> Option<Solution> {
+        let mut view = self.est_held.get(&robot).cloned();
+        for (r, s) in self.est_out.items() {
+            if *r == robot {
+                Solution::apply(&mut view, s);
+            }
+        }
+        view
+    }
+}
+
+/// Robots of a subtree bit set.
+fn members(bits: u64) -> impl Iterator<Item = u8> {
+    (0..key::MAX_ROBOTS).filter(move |r| bits & (1u64 << r) != 0)
+}
+
+/// Key pairs whose edges differ from `base` to `new`: the pairs gone, and every edge of
+/// each pair that is new or changed.
+fn delta(base: &[CondensedEdge], new: &[CondensedEdge]) -> (Vec<(u64, u64)>, Vec<CondensedEdge>) {
+    fn groups(edges: &[CondensedEdge]) -> BTreeMap<(u64, u64), Vec<&CondensedEdge>> {
+        let mut g: BTreeMap<(u64, u64), Vec<&CondensedEdge>> = BTreeMap::new();
+        for e in edges {
+            g.entry((e.a, e.b)).or_default().push(e);
+        }
+        g
+    }
+    let (gb, gn) = (groups(base), groups(new));
+    let removed = gb.keys().filter(|k| !gn.contains_key(k)).copied().collect();
+    let changed = new
+        .iter()
+        .filter(|e| gb.get(&(e.a, e.b)) != gn.get(&(e.a, e.b)))
+        .cloned()
+        .collect();
+    (removed, changed)
+}
+
+/// `base` updated by a delta (see `SeparatorGraph`).
+fn apply_delta(
+    base: &[CondensedEdge],
+    removed: &[(u64, u64)],
+    edges: &[CondensedEdge],
+) -> Vec<CondensedEdge> {
+    let gone: BTreeSet<(u64, u64)> = removed
+        .iter()
+        .copied()
+        .chain(edges.iter().map(|e| (e.a, e.b)))
+        .collect();
+    base.iter()
+        .filter(|e| !gone.contains(&(e.a, e.b)))
+        .chain(edges)
+        .cloned()
+        .collect()
+}
+
+/// Condensed edges in their wire form: poses as compact poses, informations shared by
+/// consecutive edges that repeat them.
+pub(crate) fn wire_edges(origin: u8, edges: &[CondensedEdge]) -> Result<Vec<GraphEdge>, DpgoError> {
+    // Edges that share an information travel next to each other, so it is sent once
+    // (the wire repeats the previous edge's); otherwise in their order.
+    let mut quantized = Vec::with_capacity(edges.len());
+    for e in edges {
+        let information =
+            Information::from_matrix(&e.information).map_err(|x| DpgoError::BadMessage {
+                from: origin,
+                reason: format!("edge {} -> {}: {x}", key::label(e.a), key::label(e.b)),
+            })?;
+        quantized.push((e, information));
+    }
+    let mut first: BTreeMap<(u32, [u16; 21]), usize> = BTreeMap::new();
+    for (n, (_, i)) in quantized.iter().enumerate() {
+        let (scale, factor) = i.parts();
+        first.entry((scale.to_bits(), factor)).or_insert(n);
+    }
+    quantized.sort_by_key(|(_, i)| {
+        let (scale, factor) = i.parts();
+        first[&(scale.to_bits(), factor)]
+    });
+    let mut out: Vec<GraphEdge> = Vec::with_capacity(edges.len());
+    for (e, information) in quantized {
+        let bad = |reason: String| DpgoError::BadMessage {
+            from: origin,
+            reason: format!("edge {} -> {}: {reason}", key::label(e.a), key::label(e.b)),
+        };
+        let relative = CompactPose::quantize(&e.z).map_err(|x| bad(x.to_string()))?;
+        let information = match out.last() {
+            Some(last) if last.information.parts() == information.parts() => {
+                Arc::clone(&last.information)
+            }
+            _ => Arc::new(information),
+        };
+        out.push(GraphEdge {
+            key_a: e.a,
+            key_b: e.b,
+            relative,
+            information,
+        });
+    }
+    Ok(out)
+}
+
+fn from_wire(edges: &[GraphEdge]) -> Vec<CondensedEdge> {
+    edges
+        .iter()
+        .map(|e| CondensedEdge {
+            a: e.key_a,
+            b: e.key_b,
+            z: *e.relative.se3(),
+            information: *e.information.matrix(),
+        })
+        .collect()
+}
+
+/// The condensed method's side of the agent.
+impl Agent {
+    /// Graph versions: the epoch in the high bits, so a restarted robot's graphs
+    /// replace its old ones.
+    fn own_version(&self) -> u64 {
+        (self.epoch << 32) | (self.team.own_counter & 0xffff_ffff)
+    }
+
+    /// Whether this robot solves its connected team's separator graph (condensed method:
+    /// the lowest robot it reaches). PCM's verdicts ([`Self::rejected_closures`]) are known
+    /// there: they are not sent, so PCM in the loop costs no bytes.
+    pub fn solves_team(&self) -> bool {
+        self.options.method == super::Method::Condensed && self.root() == self.robot
+    }
+
+    pub(crate) fn root(&self) -> u8 {
+        self.team.path.first().copied().unwrap_or(self.robot)
+    }
+
+    fn parent(&self) -> Option<u8> {
+        let p = &self.team.path;
+        (p.len() >= 2).then(|| p[p.len() - 2])
+    }
+
+    /// Present neighbours whose route goes through this robot, with their subtrees.
+    fn children(&self) -> BTreeMap<u8, u64> {
+        self.neighbors
+            .iter()
+            .filter(|(_, n)| n.present)
+            .filter_map(|(&id, n)| {
+                let r = n.team.route.as_ref()?;
+                let p = &r.path;
+                (p.len() >= 2
+                    && p[p.len() - 1] == id
+                    && p[p.len() - 2] == self.robot
+                    && p[0] == self.root())
+                .then_some((id, r.subtree | (1u64 << id)))
+            })
+            .collect()
+    }
+
+    /// This robot and the robots that route through it.
+    fn subtree(&self) -> u64 {
+        self.children()
+            .values()
+            .fold(1u64 << self.robot, |s, c| s | c)
+    }
+
+    /// The best route: lowest root, then fewest hops, then lowest next hop.
+    fn best_path(&self) -> Vec<u8> {
+        let mut best = ((self.robot, 1usize, self.robot), vec![self.robot]);
+        for (&id, n) in &self.neighbors {
+            let Some(r) = n.team.route.as_ref().filter(|_| n.present) else {
+                continue;
+            };
+            if r.path.last() != Some(&id) || r.path.contains(&self.robot) {
+                continue;
+            }
+            let rank = (r.path[0], r.path.len() + 1, id);
+            if rank < best.0 {
+                let mut p = r.path.clone();
+                p.push(self.robot);
+                best = (rank, p);
+            }
+        }
+        best.1
+    }
+
+    pub(crate) fn step_condensed(&mut self) -> Result<bool, DpgoError> {
+        self.stats.steps += 1;
+        self.stage = Stage::Refine;
+        if self.keys.is_empty() {
+            return Ok(false);
+        }
+        if self.own_graph_dirty {
+            let edges = condensed::condense(self.robot, &self.keys, &self.edges, &self.closures)?;
+            let changed = self
+                .team
+                .graphs
+                .get(&self.robot)
+                .is_none_or(|h| *h.edges != edges);
+            if changed {
+                self.team.fresh = true;
+                self.team.own_counter += 1;
+                let version = self.own_version();
+                self.team.graphs.insert(
+                    self.robot,
+                    Held {
+                        version,
+                        edges: Arc::new(edges),
+                    },
+                );
+            }
+            self.own_graph_dirty = false;
+        }
+        let path = self.best_path();
+        if path != self.team.path {
+            tracing::debug!(robot = self.robot, ?path, "route");
+            if self.root() == self.robot && path[0] != self.robot {
+                // Another robot solves the team now: its estimates replace ours.
+                let me = self.robot;
+                self.team.solutions.retain(|r, _| *r == me);
+                self.team.solved_with.clear();
+                self.rejected.clear();
+                self.stats.rejected_closures = 0;
+            }
+            let parent = |p: &[u8]| (p.len() >= 2).then(|| p[p.len() - 2]);
+            if parent(&path) != parent(&self.team.path) {
+                self.team.session += 1;
+            }
+            self.team.path = path;
+            self.team.path_changed_at = self.stats.steps;
+        }
+        let mut solved = false;
+        if self.root() == self.robot {
+            solved = self.solve_team()?;
+        }
+        if self.team.interior_dirty {
+            self.solve_own_interior()?;
+            solved = true;
+        }
+        if solved {
+            self.stats.updates += 1;
+        }
+        self.stage_converged = true;
+        Ok(solved)
+    }
+
+    /// The solver's step: the separator graph of every graph held, when one changed.
+    fn solve_team(&mut self) -> Result<bool, DpgoError> {
+        let versions: BTreeMap<u8, u64> = self
+            .team
+            .graphs
+            .iter()
+            .map(|(o, h)| (*o, h.version))
+            .collect();
+        if versions == self.team.solved_with && self.team.solutions.contains_key(&self.robot) {
+            return Ok(false);
+        }
+        // Every robot that routes here sends its graph, and the graphs of robots further
+        // away come a hop per step: solving before they are all in would send estimates
+        // the next solve replaces (bytes for nothing). So the solver waits until every
+        // robot of its subtree sent one and no graph changed for a step — for at most
+        // twice `patience` steps (graphs of a large team take a step per hop; a running
+        // team's graphs may keep changing).
+        let missing = members(self.subtree()).any(|r| !self.team.graphs.contains_key(&r));
+        let fresh = std::mem::take(&mut self.team.fresh);
+        if (missing || fresh) && self.team.waiting < 2 * self.options.patience {
+            self.team.waiting += 1;
+            return Ok(false);
+        }
+        self.team.waiting = 0;
+        tracing::debug!(robot = self.robot, ?versions, "solve");
+        let graphs: BTreeMap<u8, &[CondensedEdge]> = self
+            .team
+            .graphs
+            .iter()
+            .map(|(o, h)| (*o, h.edges.as_slice()))
+            .collect();
+        let (separators, rejected) =
+            condensed::solve_separators(&graphs, self.keys[0], self.options.pcm)?;
+        self.stats.rejected_closures = rejected.len() as u64;
+        self.rejected = rejected;
+        // The team frame is the lowest robot's first pose at the identity.
+        let anchor = separators
+            .keys()
+            .next()
+            .and_then(|k| key::robot(*k))
+            .unwrap_or(self.robot);
+        self.team.rounds += 1;
+        let mut solutions: BTreeMap<u8, Solution> = BTreeMap::new();
+        for (k, x) in separators {
+            let Some(r) = key::robot(k) else { continue };
+            let Some(version) = versions.get(&r) else {
+                continue;
+            };
+            solutions
+                .entry(r)
+                .or_insert_with(|| Solution {
+                    anchor,
+                    version: *version,
+                    round: self.team.rounds,
+                    separators: BTreeMap::new(),
+                })
+                .separators
+                .insert(k, x);
+        }
+        if solutions.get(&self.robot) != self.team.solutions.get(&self.robot) {
+            self.team.interior_dirty = true;
+        }
+        self.team.solutions = solutions;
+        self.team.solved_with = versions;
+        Ok(true)
+    }
+
+    /// The own poses with the own separators fixed at their team estimates.
+    fn solve_own_interior(&mut self) -> Result<(), DpgoError> {
+        self.team.interior_dirty = false;
+        let Some(own) = self.team.solutions.get(&self.robot) else {
+            return Ok(());
+        };
+        // Only the separators of the current graph: a pose that stopped being one (a gap
+        // in the odometry closed) is interior again.
+        let current: BTreeSet<usize> =
+            condensed::separators(self.keys.len(), &self.edges, &self.closures);
+        let fixed: Vec<Option<SE3>> = self
+            .keys
+            .iter()
+            .enumerate()
+            .map(|(p, k)| {
+                current
+                    .contains(&p)
+                    .then(|| own.separators.get(k).copied())
+                    .flatten()
+            })
+            .collect();
+        if fixed.iter().all(Option::is_none) {
+            return Ok(());
+        }
+        self.poses = condensed::solve_interior(&self.poses, &self.edges, &fixed)?;
+        self.anchor = own.anchor;
+        self.anchored = true;
+        self.in_frame = vec![true; self.keys.len()];
+        self.estimate_version += 1;
+        Ok(())
+    }
+
+    /// Whether the team's estimate is settled as far as this robot can tell.
+    pub(crate) fn condensed_converged(&self) -> bool {
+        if self.own_graph_dirty || self.team.interior_dirty || self.best_path() != self.team.path {
+            return false;
+        }
+        let root = self.root() == self.robot;
+        if root {
+            let versions: BTreeMap<u8, u64> = self
+                .team
+                .graphs
+                .iter()
+                .map(|(o, h)| (*o, h.version))
+                .collect();
+            if versions != self.team.solved_with {
+                return false;
+            }
+        }
+        let own_version = self.team.graphs.get(&self.robot).map(|h| h.version);
+        let children = self.children();
+        let subtree = self.subtree();
+        let parent = self.parent();
+        self.neighbors.iter().all(|(&id, n)| {
+            if !n.present {
+                return true;
+            }
+            let l = &n.team;
+            if l.acks_due() || !l.route_out.is_empty() {
+                tracing::trace!(robot = self.robot, n = id, "acks or route in flight");
+                return false;
+            }
+            if l.route_held.as_ref() != Some(&self.route_for(id, parent, subtree)) {
+                tracing::trace!(robot = self.robot, n = id, "route not held");
+                return false;
+            }
+            if Some(id) == parent {
+                let graphs_up = members(subtree).all(|o| {
+                    self.team.graphs.get(&o).is_none_or(|h| {
+                        l.graphs_held
+                            .get(&o)
+                            .is_some_and(|p| p.version >= h.version)
+                    })
+                });
+                let solved_mine = self
+                    .team
+                    .solutions
+                    .get(&self.robot)
+                    .is_some_and(|s| Some(s.version) >= own_version);
+                if !(graphs_up && l.graph_out.is_empty() && solved_mine) {
+                    tracing::trace!(robot = self.robot, graphs_up, flying = !l.graph_out.is_empty(), solved_mine, "waits for its parent");
+                    return false;
+                }
+            }
+            if let Some(&bits) = children.get(&id) {
+                if !l.est_out.is_empty() {
+                    return false;
+                }
+                for r in members(bits) {
+                    if let Some(s) = self.team.solutions.get(&r) {
+                        if !self.estimates_due(l, r, s).is_empty() {
+                            tracing::trace!(robot = self.robot, child = id, of = r, "estimates due");
+                            return false;
+                        }
+                    }
+                }
+            }
+            true
+        })
+    }
+
+    fn route_for(&self, neighbor: u8, parent: Option<u8>, subtree: u64) -> Route {
+        Route {
+            path: self.team.path.clone(),
+            subtree: if Some(neighbor) == parent { subtree } else { 0 },
+            session: self.team.session,
+        }
+    }
+
+    /// Separators of `robot` the neighbour lacks or holds beyond `send_pose` (all of them
+    /// in another frame); the first alone when only the version is new.
+    fn estimates_due(&self, link: &TeamLink, robot: u8, s: &Solution) -> Vec<(u64, SE3)> {
+        let view = link.estimates_view(robot);
+        match view {
+            Some(v) if v.anchor == s.anchor => {
+                let due: Vec<(u64, SE3)> = s
+                    .separators
+                    .iter()
+                    .filter(|(k, x)| {
+                        v.separators
+                            .get(k)
+                            .is_none_or(|h| pose_distance(h, x) > self.options.send_pose)
+                    })
+                    .map(|(k, x)| (*k, *x))
+                    .collect();
+                if due.is_empty() && v.version != s.version {
+                    s.separators.iter().take(1).map(|(k, x)| (*k, *x)).collect()
+                } else {
+                    due
+                }
+            }
+            _ => s.separators.iter().map(|(k, x)| (*k, *x)).collect(),
+        }
+    }
+
+    fn header(&self, sequence: u64) -> Header {
+        Header {
+            sender: self.id.clone(),
+            epoch: self.epoch,
+            sequence,
+        }
+    }
+
+    pub(crate) fn team_messages_for(&mut self, neighbor: u8) -> Result<Vec<Message>, DpgoError> {
+        let mut out = Vec::new();
+        let step = self.stats.steps;
+        let resend_after = self.options.resend_after;
+        let parent = self.parent();
+        let subtree = self.subtree();
+        let children = self.children();
+        let route = self.route_for(neighbor, parent, subtree);
+        let Some(n) = self.neighbors.get_mut(&neighbor) else {
+            return Ok(out);
+        };
+        // Acknowledgements of what arrived.
+        for (rx, kind) in [
+            (&mut n.team.route_rx, Kind::Route),
+            (&mut n.team.graph_rx, Kind::SeparatorGraph),
+            (&mut n.team.est_rx, Kind::PoseEstimates),
+        ] {
+            if let Some(ack) = rx.take_ack(&self.id, self.epoch, n.ack_sequence, kind) {
+                n.ack_sequence += 1;
+                out.push(ack);
+            }
+        }
+        // What was not acknowledged in time is lost (and what built on it).
+        let l = &mut n.team;
+        let routes = l.route_out.expire(step, resend_after).len();
+        let graphs = l.graph_out.expire(step, resend_after);
+        let estimates = l.est_out.expire(step, resend_after);
+        l.lost(routes, &graphs, &estimates);
+        self.stats.resent += (routes + graphs.len() + estimates.len()) as u64;
+        // The route, when the neighbour's copy differs.
+        if l.route_view() != Some(&route) {
+            let s = l.route_out.send(step, route.clone());
+            out.push(Message::new(self.header(s), Body::Route(route)));
+        }
+        let n = self.neighbors.get(&neighbor).map(|n| &n.team);
+        // Graphs of the subtree, to the parent, once the route held for a step: while
+        // routes are being explored (the solver left, robots try each other's stale
+        // routes) a graph sent to a parent of the moment is sent again to the next.
+        let mut graphs = Vec::new();
+        let settled = self.stats.steps > self.team.path_changed_at;
+        if Some(neighbor) == parent && settled {
+            for o in members(subtree) {
+                let Some(held) = self.team.graphs.get(&o) else {
+                    continue;
+                };
+                let view = n.and_then(|l| l.graph_view(o));
+                if view.is_some_and(|v| v.version >= held.version) {
+                    continue;
+                }
+                graphs.push((o, held.clone(), view.cloned()));
+            }
+        }
+        // Estimates of the child's subtree, to a child.
+        let mut estimates = Vec::new();
+        if let (Some(&bits), Some(l)) = (children.get(&neighbor), n) {
+            for r in members(bits) {
+                if let Some(s) = self.team.solutions.get(&r) {
+                    let due = self.estimates_due(l, r, s);
+                    if !due.is_empty() {
+                        estimates.push((r, s.clone(), due));
+                    }
+                }
+            }
+        }
+        let updates = self.options.graph_updates;
+        for (origin, held, view) in graphs {
+            let view = view.filter(|_| updates);
+            let body = graph_update(origin, &held, view.as_ref(), self.header(0))?;
+            if let Some(l) = self.neighbors.get_mut(&neighbor).map(|n| &mut n.team) {
+                let s = l.graph_out.send(step, (origin, held));
+                out.push(Message::new(self.header(s), Body::SeparatorGraph(body)));
+            }
+        }
+        for (robot, s, due) in estimates {
+            for chunk in due.chunks(MAX_POSE_ESTIMATES) {
+                let mut carried = Solution {
+                    separators: BTreeMap::new(),
+                    ..s.clone()
+                };
+                let mut values = Vec::with_capacity(chunk.len());
+                for (k, x) in chunk {
+                    let q = CompactPose::quantize(x).map_err(|source| DpgoError::Quantize {
+                        key: key::label(*k),
+                        source,
+                    })?;
+                    carried.separators.insert(*k, *q.se3());
+                    values.push(PoseEstimate {
+                        key: *k,
+                        value: Estimate::Pose(q),
+                    });
+                }
+                let Some(l) = self.neighbors.get_mut(&neighbor).map(|n| &mut n.team) else {
+                    continue;
+                };
+                tracing::debug!(
+                    from = self.robot,
+                    to = neighbor,
+                    robot,
+                    n = values.len(),
+                    "estimates"
+                );
+                let seq = l.est_out.send(step, (robot, carried));
+                self.stats.estimates_sent += values.len() as u64;
+                out.push(Message::new(
+                    self.header(seq),
+                    Body::PoseEstimates(PoseEstimates {
+                        optimization: s.version,
+                        round: s.round,
+                        stage: Stage::Refine,
+                        flags: 0,
+                        anchor: s.anchor,
+                        estimates: values,
+                    }),
+                ));
+            }
+        }
+        Ok(out)
+    }
+
+    /// Takes one condensed-method message (or its acknowledgement) from `neighbor`.
+    pub(crate) fn team_receive(
+        &mut self,
+        neighbor: u8,
+        message: &Message,
+    ) -> Result<bool, DpgoError> {
+        let refuse = |reason: String| DpgoError::BadMessage {
+            from: neighbor,
+            reason,
+        };
+        let h = &message.header;
+        let robot = self.robot;
+        let parent = self.parent();
+        {
+            let Some(n) = self.neighbors.get_mut(&neighbor) else {
+                self.stats.refused += 1;
+                return Err(refuse("no closure with this robot".into()));
+            };
+            let l = &mut n.team;
+            // An older epoch is stale; a higher one: the neighbour restarted and holds
+            // nothing of ours.
+            if l.held_epoch.is_some_and(|e| h.epoch < e) {
+                self.stats.ignored_stale += 1;
+                return Ok(false);
+            }
+            if l.held_epoch.is_some_and(|e| h.epoch > e) {
+                l.forget();
+            }
+            l.held_epoch = Some(h.epoch);
+        }
+        if let Body::Ack(a) = &message.body {
+            if a.epoch != self.epoch {
+                self.stats.ignored_stale += 1;
+                return Ok(false);
+            }
+            return self.team_ack(neighbor, a);
+        }
+        let Some(l) = self.neighbors.get_mut(&neighbor).map(|n| &mut n.team) else {
+            return Ok(false);
+        };
+        match &message.body {
+            Body::Route(r) => {
+                if r.path.last() != Some(&neighbor) {
+                    self.stats.refused += 1;
+                    return Err(refuse(format!(
+                        "route {:?} does not end at its sender",
+                        r.path
+                    )));
+                }
+                if l.route_rx.arrive(h.epoch, h.sequence) == Arrival::Stale
+                    || l.route_sequence.is_some_and(|s| h.sequence <= s)
+                {
+                    self.stats.ignored_stale += 1;
+                    return Ok(false);
+                }
+                tracing::trace!(robot, from = neighbor, path = ?r.path, subtree = r.subtree, session = r.session, "route in");
+                l.route_sequence = Some(h.sequence);
+                // A new session: the neighbour's holdings may have come from elsewhere.
+                if l.route.as_ref().is_some_and(|old| old.session != r.session) {
+                    l.est_held.clear();
+                    l.est_out.clear();
+                }
+                l.route = Some(r.clone());
+                Ok(true)
+            }
+            Body::SeparatorGraph(g) => {
+                let edges = from_wire(&g.edges);
+                if g.origin == robot {
+                    self.stats.refused += 1;
+                    return Err(refuse("a graph of this robot's own trajectory".into()));
+                }
+                if let Err(reason) = condensed::check_graph(g.origin, &edges) {
+                    self.stats.refused += 1;
+                    return Err(refuse(reason));
+                }
+                if g.removed
+                    .iter()
+                    .any(|(a, _)| key::robot(*a) != Some(g.origin))
+                {
+                    self.stats.refused += 1;
+                    return Err(refuse("an update removing another robot's edges".into()));
+                }
+                let held = self.team.graphs.get(&g.origin);
+                let new = match held {
+                    Some(h) if h.version >= g.version => None,
+                    _ if g.base == 0 => Some(edges),
+                    Some(h) if h.version == g.base => {
+                        Some(apply_delta(&h.edges, &g.removed, &edges))
+                    }
+                    // An update of a version we do not hold: not acknowledged, so the
+                    // sender takes it as lost and sends what we can apply.
+                    _ => {
+                        self.stats.ignored_stale += 1;
+                        return Ok(false);
+                    }
+                };
+                let Some(l) = self.neighbors.get_mut(&neighbor).map(|n| &mut n.team) else {
+                    return Ok(false);
+                };
+                if l.graph_rx.arrive(h.epoch, h.sequence) == Arrival::Stale {
+                    self.stats.ignored_stale += 1;
+                    return Ok(false);
+                }
+                let Some(edges) = new else {
+                    self.stats.ignored_stale += 1;
+                    return Ok(false);
+                };
+                // The sender holds it: it never needs it back.
+                let held = Held {
+                    version: g.version,
+                    edges: Arc::new(edges),
+                };
+                l.graphs_held.insert(g.origin, held.clone());
+                self.team.graphs.insert(g.origin, held);
+                self.team.fresh = true;
+                Ok(true)
+            }
+            Body::PoseEstimates(p) => {
+                let Some(r) = p.estimates.first().and_then(|e| key::robot(e.key)) else {
+                    self.stats.refused += 1;
+                    return Err(refuse("separator estimates naming no robot".into()));
+                };
+                if p.stage != Stage::Refine {
+                    self.stats.refused += 1;
+                    return Err(refuse(format!("estimates of stage {:?}", p.stage)));
+                }
+                // Only the parent's: another robot's may be of another solve or frame. Not
+                // acknowledged, so a sender that still takes us for its child resends them
+                // if we become it again.
+                if Some(neighbor) != parent {
+                    tracing::trace!(robot, from = neighbor, ?parent, "estimates from another robot than the parent ignored");
+                    self.stats.ignored_stale += 1;
+                    return Ok(false);
+                }
+                if l.est_rx.arrive(h.epoch, h.sequence) == Arrival::Stale {
+                    self.stats.ignored_stale += 1;
+                    return Ok(false);
+                }
+                let carried = Solution {
+                    anchor: p.anchor,
+                    version: p.optimization,
+                    round: p.round,
+                    separators: p
+                        .estimates
+                        .iter()
+                        .filter_map(|e| match &e.value {
+                            Estimate::Pose(q) => Some((e.key, *q.se3())),
+                            Estimate::Rotation(_) => None,
+                        })
+                        .collect(),
+                };
+                let mut held = self.team.solutions.remove(&r);
+                let before = held.clone();
+                Solution::apply(&mut held, &carried);
+                if r == robot && held != before {
+                    self.team.interior_dirty = true;
+                }
+                if let Some(s) = held {
+                    self.team.solutions.insert(r, s);
+                }
+                Ok(true)
+            }
+            other => {
+                self.stats.refused += 1;
+                Err(refuse(format!(
+                    "kind {} is not a message of the condensed method",
+                    other.kind().name()
+                )))
+            }
+        }
+    }
+
+    fn team_ack(&mut self, neighbor: u8, a: &Ack) -> Result<bool, DpgoError> {
+        let Some(l) = self.neighbors.get_mut(&neighbor).map(|n| &mut n.team) else {
+            return Ok(false);
+        };
+        let lost = match a.kind {
+            Kind::Route => {
+                // Lost ones first: what a later delivered one carried is certain.
+                let s = l.route_out.acknowledge(a);
+                l.lost(s.lost.len(), &[], &[]);
+                if let Some(r) = s.delivered.into_iter().last() {
+                    l.route_held = Some(r);
+                }
+                s.lost.len()
+            }
+            Kind::SeparatorGraph => {
+                let s = l.graph_out.acknowledge(a);
+                l.lost(0, &s.lost, &[]);
+                for (o, h) in s.delivered {
+                    if l.graphs_held.get(&o).is_none_or(|x| x.version < h.version) {
+                        l.graphs_held.insert(o, h);
+                    }
+                }
+                s.lost.len()
+            }
+            Kind::PoseEstimates => {
+                let s = l.est_out.acknowledge(a);
+                l.lost(0, &[], &s.lost);
+                for (r, carried) in s.delivered {
+                    let mut held = l.est_held.remove(&r);
+                    Solution::apply(&mut held, &carried);
+                    if let Some(h) = held {
+                        l.est_held.insert(r, h);
+                    }
+                }
+                s.lost.len()
+            }
+            other => {
+                self.stats.refused += 1;
+                return Err(DpgoError::BadMessage {
+                    from: neighbor,
+                    reason: format!("ack of kind {}", other.name()),
+                });
+            }
+        };
+        self.stats.resent += lost as u64;
+        Ok(true)
+    }
+}
+
+/// The message that brings a neighbour holding `view` (if anything) to `held`: an update
+/// when smaller than the whole graph.
+fn graph_update(
+    origin: u8,
+    held: &Held,
+    view: Option<&Held>,
+    header: Header,
+) -> Result<SeparatorGraph, DpgoError> {
+    if held.edges.len() > MAX_GRAPH_EDGES {
+        return Err(DpgoError::BadMessage {
+            from: origin,
+            reason: format!(
+                "condensed graph of {} edges: more than one message carries ({MAX_GRAPH_EDGES})",
+                held.edges.len()
+            ),
+        });
+    }
+    let whole = SeparatorGraph {
+        origin,
+        version: held.version,
+        base: 0,
+        removed: Vec::new(),
+        edges: wire_edges(origin, &held.edges)?,
+    };
+    let Some(v) = view.filter(|v| v.version > 0 && v.version < held.version) else {
+        return Ok(whole);
+    };
+    let (removed, changed) = delta(&v.edges, &held.edges);
+    let update = SeparatorGraph {
+        origin,
+        version: held.version,
+        base: v.version,
+        removed,
+        edges: wire_edges(origin, &changed)?,
+    };
+    let size = |g: &SeparatorGraph| {
+        Message::new(header.clone(), Body::SeparatorGraph(g.clone())).encoded_len()
+    };
+    Ok(if size(&update) < size(&whole) {
+        update
+    } else {
+        whole
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use doorslam_geometry::TangentMatrix;
+
+    fn edge(a: u64, b: u64, x: f64) -> CondensedEdge {
+        CondensedEdge {
+            a: key::symbol(0, a).unwrap(),
+            b: key::symbol(0, b).unwrap(),
+            z: SE3::translation(x, 0.0, 0.0),
+            information: TangentMatrix::identity(),
+        }
+    }
+
+    #[test]
+    fn a_delta_rebuilds_the_new_graph() {
+        // A new separator 5 splits the chain edge 0 -> 9; a closure is added.
+        let base = vec![edge(0, 9, 9.0), edge(9, 12, 3.0)];
+        let mut closure = edge(5, 0, 1.0);
+        closure.b = key::symbol(1, 4).unwrap();
+        let new = vec![edge(0, 5, 5.0), edge(5, 9, 4.0), edge(9, 12, 3.0), closure];
+        let (removed, changed) = delta(&base, &new);
+        assert_eq!(
+            removed,
+            vec![(key::symbol(0, 0).unwrap(), key::symbol(0, 9).unwrap())]
+        );
+        assert_eq!(changed.len(), 3);
+        let mut rebuilt = apply_delta(&base, &removed, &changed);
+        let mut want = new.clone();
+        let order = |e: &CondensedEdge| (e.a, e.b);
+        rebuilt.sort_by_key(order);
+        want.sort_by_key(order);
+        assert_eq!(rebuilt, want);
+        // Nothing changed: an empty delta.
+        assert_eq!(delta(&new, &new), (vec![], vec![]));
+    }
+}
