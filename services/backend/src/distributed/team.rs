@@ -501,6 +501,7 @@ impl Agent {
                 .separators
                 .insert(k, x);
         }
+        let solutions = keep_frame(self.team.solutions.get(&self.robot), self.robot, solutions);
         if solutions.get(&self.robot) != self.team.solutions.get(&self.robot) {
             self.team.interior_dirty = true;
         }
@@ -1035,6 +1036,48 @@ fn graph_update(
     } else {
         whole
     })
+}
+
+/// Keeps a lower robot's frame when that robot left and this one solves now.
+///
+/// A robot that solved in the frame of a lower robot (its solver, now out of range) and
+/// becomes the solver of what is left holds no graph of the robot that fixed that frame,
+/// so its own solve is anchored at itself. Both solutions are optima of their problems
+/// up to the gauge; the new one is moved rigidly so that this robot's first separator
+/// stays where the old frame put it, and keeps the old anchor. Robots that come back
+/// into range of the lower robot get its solution again; nobody's map jumps meanwhile.
+fn keep_frame(
+    previous: Option<&Solution>,
+    robot: u8,
+    mut solutions: BTreeMap<u8, Solution>,
+) -> BTreeMap<u8, Solution> {
+    let Some(previous) = previous else {
+        return solutions;
+    };
+    let Some(new_anchor) = solutions.get(&robot).map(|s| s.anchor) else {
+        return solutions;
+    };
+    if previous.anchor >= new_anchor {
+        return solutions;
+    }
+    let Some(own) = solutions.get(&robot) else {
+        return solutions;
+    };
+    let Some((old, new)) = own
+        .separators
+        .iter()
+        .find_map(|(k, x)| previous.separators.get(k).map(|o| (*o, *x)))
+    else {
+        return solutions;
+    };
+    let t = old * new.inverse();
+    for s in solutions.values_mut() {
+        s.anchor = previous.anchor;
+        for x in s.separators.values_mut() {
+            *x = t * *x;
+        }
+    }
+    solutions
 }
 
 #[cfg(test)]
