@@ -361,7 +361,9 @@ fn three_robots(
             g.add_pose(key::symbol(r, i).unwrap(), truth(r, i));
         }
     }
-    let at = |g: &PoseGraph<Isometry3<f64>>, r: u8, i: u64| g.index_of(key::symbol(r, i).unwrap()).unwrap();
+    let at = |g: &PoseGraph<Isometry3<f64>>, r: u8, i: u64| {
+        g.index_of(key::symbol(r, i).unwrap()).unwrap()
+    };
     for r in 0..3u8 {
         for i in 0..29 {
             let z = truth(r, i).inverse() * truth(r, i + 1);
@@ -418,7 +420,10 @@ fn a_lone_closure_is_checked_through_a_third_robot() {
     // Through c it closes cycles with the confirmed closures: kept.
     let (size, confirmed, ab) = kept(&right, 2, true);
     assert_eq!((size, confirmed), (7, 1));
-    assert_eq!(ab, vec![(key::symbol(0, 15).unwrap(), key::symbol(1, 17).unwrap())]);
+    assert_eq!(
+        ab,
+        vec![(key::symbol(0, 15).unwrap(), key::symbol(1, 17).unwrap())]
+    );
     // A wrong lone closure fails those cycles: rejected, where min clique 1 keeps it.
     let wrong = three_robots(&shared, &[lone]);
     assert_eq!(kept(&wrong, 1, false).0, 7);
@@ -428,5 +433,8 @@ fn a_lone_closure_is_checked_through_a_third_robot() {
     let both = three_robots(&[shared.as_slice(), &[lone]].concat(), &[(0, 8, 1, 2)]);
     let (size, confirmed, ab) = kept(&both, 2, true);
     assert_eq!((size, confirmed), (7, 1));
-    assert_eq!(ab, vec![(key::symbol(0, 15).unwrap(), key::symbol(1, 17).unwrap())]);
+    assert_eq!(
+        ab,
+        vec![(key::symbol(0, 15).unwrap(), key::symbol(1, 17).unwrap())]
+    );
 }

@@ -586,7 +586,13 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
             let in_loop = !rejected.contains(&(c.0, c.1)) && !rejected.contains(&(c.1, c.0));
             let oracle = kept.contains(&(c.0, c.1));
             if in_loop != oracle {
-                tracing::debug!(a = key::label(c.0), b = key::label(c.1), in_loop, oracle, "PCM verdicts differ");
+                tracing::debug!(
+                    a = key::label(c.0),
+                    b = key::label(c.1),
+                    in_loop,
+                    oracle,
+                    "PCM verdicts differ"
+                );
             }
         }
     }

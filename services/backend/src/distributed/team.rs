@@ -590,7 +590,13 @@ impl Agent {
                     .get(&self.robot)
                     .is_some_and(|s| Some(s.version) >= own_version);
                 if !(graphs_up && l.graph_out.is_empty() && solved_mine) {
-                    tracing::trace!(robot = self.robot, graphs_up, flying = !l.graph_out.is_empty(), solved_mine, "waits for its parent");
+                    tracing::trace!(
+                        robot = self.robot,
+                        graphs_up,
+                        flying = !l.graph_out.is_empty(),
+                        solved_mine,
+                        "waits for its parent"
+                    );
                     return false;
                 }
             }
@@ -601,7 +607,12 @@ impl Agent {
                 for r in members(bits) {
                     if let Some(s) = self.team.solutions.get(&r) {
                         if !self.estimates_due(l, r, s).is_empty() {
-                            tracing::trace!(robot = self.robot, child = id, of = r, "estimates due");
+                            tracing::trace!(
+                                robot = self.robot,
+                                child = id,
+                                of = r,
+                                "estimates due"
+                            );
                             return false;
                         }
                     }
@@ -902,7 +913,12 @@ impl Agent {
                 // acknowledged, so a sender that still takes us for its child resends them
                 // if we become it again.
                 if Some(neighbor) != parent {
-                    tracing::trace!(robot, from = neighbor, ?parent, "estimates from another robot than the parent ignored");
+                    tracing::trace!(
+                        robot,
+                        from = neighbor,
+                        ?parent,
+                        "estimates from another robot than the parent ignored"
+                    );
                     self.stats.ignored_stale += 1;
                     return Ok(false);
                 }
