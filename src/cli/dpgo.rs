@@ -94,6 +94,11 @@ pub struct DpgoArgs {
     /// (nearest-pd); the distributed back-end needs positive-definite ones.
     #[arg(long, value_enum, default_value_t = InformationArg::Check)]
     pub information: InformationArg,
+    /// Write the team's estimate as it ends to this g2o file: every robot's poses as
+    /// `VERTEX_SE3:QUAT` lines, after one comment `# robot R anchor A` per robot in a frame
+    /// (A: the robot whose first pose fixes it).
+    #[arg(long, value_name = "FILE.g2o")]
+    pub out: Option<PathBuf>,
     /// Print one JSON object on stdout.
     #[arg(long)]
     pub json: bool,
@@ -236,6 +241,23 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         let q = l.quality(&kept);
         (q.precision, q.recall)
     });
+    if let Some(out) = &args.out {
+        // Which frame each robot ended in, for tools that compare with ground truth
+        // (a robot never connected to the anchor keeps its own frame).
+        let mut text = String::new();
+        for (robot, anchor) in &r.anchors {
+            text.push_str(&format!(
+                "# robot {} anchor {}\n",
+                key::robot_char(*robot)?,
+                key::robot_char(*anchor)?
+            ));
+        }
+        for (k, x) in &r.estimate {
+            text.push_str(&doorslam_backend::g2o::se3_vertex_line(*k, x));
+            text.push('\n');
+        }
+        std::fs::write(out, text).with_context(|| format!("--out {}", out.display()))?;
+    }
     if args.json {
         let mut v = serde_json::to_value(&r)?;
         if let (Some((precision, recall)), Some(o)) = (quality, v.as_object_mut()) {

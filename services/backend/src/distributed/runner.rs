@@ -66,6 +66,13 @@ impl Default for RunOptions {
 /// What a run did, `doorslam dpgo --json`'s fields.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct RunReport {
+    /// Every robot's poses as its agent ends with them (key, pose): in the team's frame
+    /// for the robots connected to the anchor (`doorslam dpgo --out`).
+    #[serde(skip)]
+    pub estimate: Vec<(u64, SE3)>,
+    /// Robot → the robot whose frame its estimate is in (anchored robots only).
+    #[serde(skip)]
+    pub anchors: BTreeMap<u8, u8>,
     pub method: super::Method,
     pub robots: usize,
     /// Rounds until every robot converged (or `max_rounds`).
@@ -636,6 +643,15 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
         s.len()
     };
     Ok(RunReport {
+        estimate: agents
+            .values()
+            .flat_map(|a| a.estimate().map(|(k, x)| (k, *x)))
+            .collect(),
+        anchors: agents
+            .values()
+            .filter(|a| a.anchored())
+            .map(|a| (a.robot(), a.anchor()))
+            .collect(),
         method: options.agent.method,
         robots: agents.len(),
         iterations,
