@@ -239,7 +239,16 @@ pub fn run(args: DpgoArgs) -> Result<()> {
             .filter(|p| !rejected.contains(p))
             .collect();
         let q = l.quality(&kept);
-        (q.precision, q.recall)
+        let inliers = q.true_positives + q.false_negatives;
+        let outliers = l.len() - inliers;
+        serde_json::json!({
+            "pcm_precision": q.precision,
+            "pcm_recall": q.recall,
+            "inliers": inliers,
+            "inliers_rejected": q.false_negatives,
+            "outliers": outliers,
+            "outliers_rejected": outliers - q.false_positives.min(outliers),
+        })
     });
     if let Some(out) = &args.out {
         // Which frame each robot ended in, for tools that compare with ground truth
@@ -260,9 +269,8 @@ pub fn run(args: DpgoArgs) -> Result<()> {
     }
     if args.json {
         let mut v = serde_json::to_value(&r)?;
-        if let (Some((precision, recall)), Some(o)) = (quality, v.as_object_mut()) {
-            o.insert("pcm_precision".into(), precision.into());
-            o.insert("pcm_recall".into(), recall.into());
+        if let (Some(serde_json::Value::Object(q)), Some(o)) = (&quality, v.as_object_mut()) {
+            o.extend(q.clone());
         }
         println!("{v}");
     } else {
@@ -290,8 +298,15 @@ pub fn run(args: DpgoArgs) -> Result<()> {
             "{} messages, {} bytes (centralized: {} bytes, ratio {:.3}); {} dropped, {} resent",
             r.messages, r.bytes, r.bytes_centralized, r.bytes_ratio, r.dropped, r.resent
         );
-        if let Some((precision, recall)) = quality {
-            println!("PCM against the labels: precision {precision:.3}, recall {recall:.3}");
+        if let Some(q) = &quality {
+            println!(
+                "PCM against the labels: precision {:.3}, recall {:.3}; outliers rejected {} of {}, inliers rejected {} of {}",
+                q["pcm_precision"].as_f64().unwrap_or(f64::NAN),
+                q["pcm_recall"].as_f64().unwrap_or(f64::NAN),
+                q["outliers_rejected"],
+                q["outliers"],
+                q["inliers_rejected"], q["inliers"]
+            );
         }
         if args.pcm.is_some() {
             println!(

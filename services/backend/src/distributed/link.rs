@@ -218,6 +218,8 @@ pub(crate) fn ack_message(
 }
 
 #[cfg(test)]
+// Acknowledgements list received ranges; a list of one range is the case under test.
+#[allow(clippy::single_range_in_vec_init)]
 mod tests {
     use super::*;
 
