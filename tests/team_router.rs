@@ -68,6 +68,7 @@ index = {index}
 [team]
 name = "{team}"
 mode = "client"
+pieces = "standin"
 listen = []
 connect = ["{router}"]
 multicast_scouting = false

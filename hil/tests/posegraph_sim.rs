@@ -507,7 +507,7 @@ fn bad_config_values_name_the_field() {
     type Edit = fn(&mut SimConfig);
     let cases: [(&str, Edit); 14] = [
         ("robots", |c| c.robots = 0),
-        ("robots", |c| c.robots = 27),
+        ("robots", |c| c.robots = 53),
         ("poses_per_robot", |c| c.poses_per_robot = 1),
         ("step_m", |c| c.step_m = 0.0),
         ("step_m", |c| c.step_m = f64::NAN),

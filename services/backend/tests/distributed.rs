@@ -697,3 +697,33 @@ fn a_route_that_lies_and_an_update_of_an_unknown_version_are_not_taken() {
     }
     assert!(a.converged() && b.converged());
 }
+
+#[test]
+fn a_robot_whose_solver_leaves_keeps_the_solution_it_got() {
+    // a solves the pair; then a leaves range with nothing new on b's side: b takes over,
+    // and keeps a's solution (solving alone, closures to a's poses would hang free).
+    let (mut a, mut b) = pair(Method::Condensed);
+    for _ in 0..12 {
+        a.step().unwrap();
+        for m in a.messages_for(1).unwrap() {
+            b.receive(0, &m).unwrap();
+        }
+        b.step().unwrap();
+        for m in b.messages_for(0).unwrap() {
+            a.receive(1, &m).unwrap();
+        }
+    }
+    assert!(a.solves_team() && b.converged() && b.anchor() == 0);
+    let before = estimates(&b);
+    b.set_present(0, false);
+    for _ in 0..4 {
+        b.step().unwrap();
+    }
+    assert!(b.solves_team(), "b takes over when a leaves");
+    assert_eq!(b.anchor(), 0, "b keeps a's frame");
+    assert_eq!(
+        estimates(&b),
+        before,
+        "b's estimate changed without new information"
+    );
+}

@@ -453,6 +453,14 @@ impl Agent {
         if versions == self.team.solved_with && self.team.solutions.contains_key(&self.robot) {
             return Ok(false);
         }
+        // Taking over from a solver that left: the solutions it sent were computed with
+        // every graph held here at the same version, and with the graphs of robots that
+        // are not here (which a solve here would lose: closures to their poses would hang
+        // free). Solve only once something new arrives.
+        if self.inherited_solution_is_current(&versions) {
+            self.team.solved_with = versions;
+            return Ok(false);
+        }
         // Every robot that routes here sends its graph, and the graphs of robots further
         // away come a hop per step: solving before they are all in would send estimates
         // the next solve replaces (bytes for nothing). So the solver waits until every
@@ -508,6 +516,21 @@ impl Agent {
         self.team.solutions = solutions;
         self.team.solved_with = versions;
         Ok(true)
+    }
+
+    /// Whether the solutions held came from a lower solver that used every graph in
+    /// `versions` at that version.
+    fn inherited_solution_is_current(&self, versions: &BTreeMap<u8, u64>) -> bool {
+        let Some(own) = self.team.solutions.get(&self.robot) else {
+            return false;
+        };
+        own.anchor < self.robot
+            && versions.iter().all(|(r, v)| {
+                self.team
+                    .solutions
+                    .get(r)
+                    .is_some_and(|s| s.version == *v && s.anchor == own.anchor)
+            })
     }
 
     /// The own poses with the own separators fixed at their team estimates.
