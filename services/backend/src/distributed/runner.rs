@@ -465,6 +465,12 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
         rejected_centralized = before - central.edges().len();
         oracle_kept = Some(keep);
     }
+    // PCM may leave robots without a kept closure: the oracle (and the comparison with
+    // it) is the part of the team connected to the anchor, as each agent's frame is.
+    let mut central = super::condensed::reachable_part(
+        &central,
+        central.index_of(anchor_key).unwrap_or_default(),
+    )?;
     let anchor = central.index_of(anchor_key).unwrap_or_default();
     SE3::chordal(&mut central, anchor)?;
     optimize(&mut central, anchor, &SolverOptions::default())?;
