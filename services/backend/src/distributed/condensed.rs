@@ -293,7 +293,10 @@ pub(crate) fn solve_separators(
 }
 
 /// The poses of `g` connected to pose `start` (same order, same values) and their edges.
-pub(crate) fn reachable_part(g: &PoseGraph<SE3>, start: usize) -> Result<PoseGraph<SE3>, DpgoError> {
+pub(crate) fn reachable_part(
+    g: &PoseGraph<SE3>,
+    start: usize,
+) -> Result<PoseGraph<SE3>, DpgoError> {
     let reach = g.reachable_from(start);
     let mut part = PoseGraph::<SE3>::new();
     for (p, k) in g.keys().iter().enumerate() {
