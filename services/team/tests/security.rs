@@ -350,7 +350,10 @@ fn a_peer_without_the_team_certificate_cannot_connect_or_inject() {
     assert_eq!(sb.descriptors_delivered, KEYFRAMES);
     assert_eq!(sb.descriptors_redelivered, 0);
     let ledger = b.ledger().lock();
-    for reason in ["stale_epoch", "wrong_sender", "bad_key", "unknown_peer"] {
+    // Not "unknown_peer": a's first message may overtake a's liveliness token (Zenoh orders
+    // neither against the other); b drops it and a resends. The intruders never reach b at
+    // all: they get no link (below).
+    for reason in ["stale_epoch", "wrong_sender", "bad_key"] {
         assert_eq!(ledger.dropped_count(reason), 0, "{reason}");
     }
     drop(ledger);
