@@ -636,7 +636,7 @@ fn markdown(s: &Summary, bw_table: &str) -> String {
     }
     let _ = writeln!(
         t,
-        "\nFiles: `summary.json` (these figures), `<robot>/` (robot.toml, robot.log, ledger.json, status.json, backend.json, odometry.tum, team_estimate.tum, graph.g2o, keyframes.csv, the journal), `world/` (the rendered flights and their truth). `doorslam bw --json <this folder>` reads the ledgers."
+        "\nFiles: `summary.json` (these figures), `<robot>/` (robot.toml, robot.log, ledger.json, status.json, backend.json, odometry.tum, team_estimate.tum, graph.g2o, keyframes.csv, the journal, team.own), `world/` (the rendered flights and their truth). `doorslam bw --json <this folder>` reads the ledgers."
     );
     t
 }

@@ -9,13 +9,16 @@
 //!   own keyframes (the front-end's verifier), and the relay to the back-end (closures,
 //!   peers present, the distributed back-end's messages) — plain state, tested with values;
 //! - [`run`]: `doorslam service team` with those pieces: keyframes and descriptors in,
-//!   closures and relayed messages out.
+//!   closures and relayed messages out;
+//! - [`store`]: own keyframes' verification packets and descriptors kept on disk, so a
+//!   restarted robot still offers its keyframes from before the restart.
 //!
 //! A crate of its own because it composes services (front-end, place recognition, team
 //! link) that do not depend on each other; only this glue does.
 
 pub mod pieces;
 pub mod run;
+pub mod store;
 
 pub use pieces::{MatchSettings, PiecesStats, Shared};
 pub use run::{run, IpcSide, RendezvousSection, RobotPieces};

@@ -15,14 +15,16 @@ use doorslam_frontend::{verify, VerifyConfig};
 use doorslam_geometry::information::upper_from_matrix;
 use doorslam_geometry::{key, pose_to_array, reverse_measurement};
 use doorslam_ipc::wire::{
-    Body, Descriptor, Header, Information, LoopClosure, Match, Message, Pose, RobotId,
-    VerificationFeatures, DESCRIPTOR_DIM,
+    Body, Descriptor, Descriptors, Header, Information, LoopClosure, Match, Message, Pose,
+    RobotId, VerificationFeatures, DESCRIPTOR_DIM,
 };
 use doorslam_ipc::{EnvelopeEvent, Feature, Keyframe, PlaceDescriptor};
 use doorslam_place_recognition::MatchIndex;
 use doorslam_team::protocol::{BackendExchange, BackendRefusal, DescriptorBatch, DescriptorSource};
 use doorslam_team::{Pieces, Verifier};
 use serde::Serialize;
+
+use crate::store::{OwnStore, StoreError};
 
 /// How putative pairs are chosen and verified.
 #[derive(Debug, Clone, PartialEq)]
@@ -77,6 +79,12 @@ pub struct PiecesStats {
     pub backend_messages_by_peer: BTreeMap<String, u64>,
     /// Back-end messages sent to each peer (taken by the protocol).
     pub peer_messages_by_peer: BTreeMap<String, u64>,
+    /// Own keyframes and descriptors read back from the store at start (a restart).
+    pub restored_keyframes: u64,
+    pub restored_descriptors: u64,
+    /// Appends to the store that failed (logged; the keyframe is still offered until the
+    /// next restart).
+    pub store_errors: u64,
 }
 
 /// What the pieces share.
@@ -98,6 +106,8 @@ pub struct State {
     for_peers: BTreeMap<u8, VecDeque<Body>>,
     /// Peers by id: robot number and team-link epoch, from their Hello.
     peers: BTreeMap<RobotId, (u8, u64, bool)>,
+    /// Where own keyframes are kept across restarts (none in tests of the protocol).
+    store: Option<OwnStore>,
     stats: PiecesStats,
 }
 
@@ -119,8 +129,61 @@ impl Shared {
             closures: VecDeque::new(),
             for_peers: BTreeMap::new(),
             peers: BTreeMap::new(),
+            store: None,
             stats: PiecesStats::default(),
         })))
+    }
+
+    /// Keeps own keyframes in the store at `path` from now on, after taking back what it
+    /// holds (the keyframes of this robot's earlier runs, see [`crate::store`]).
+    pub fn open_store(&self, path: &std::path::Path) -> Result<(), StoreError> {
+        let (store, bodies) = OwnStore::open(path)?;
+        let mut s = self.lock();
+        for body in bodies {
+            match body {
+                Body::VerificationFeatures(v) if key::robot(v.key) == Some(s.robot) => {
+                    let sigma = s.settings.verify.disparity_sigma_px;
+                    let (_, features) = from_packet(&v, sigma);
+                    s.features.insert(key::index(v.key), features);
+                    s.stats.restored_keyframes += 1;
+                }
+                Body::Descriptors(d) => {
+                    for q in d.descriptors {
+                        if key::robot(q.key) != Some(s.robot) || s.index.insert(q.clone()).is_err()
+                        {
+                            continue;
+                        }
+                        s.descriptors.insert(key::index(q.key), q);
+                        s.stats.restored_descriptors += 1;
+                    }
+                }
+                _ => {}
+            }
+        }
+        if s.stats.restored_keyframes > 0 || s.stats.restored_descriptors > 0 {
+            tracing::info!(
+                path = %path.display(),
+                keyframes = s.stats.restored_keyframes,
+                descriptors = s.stats.restored_descriptors,
+                "team: own keyframes of earlier runs restored"
+            );
+        }
+        s.store = Some(store);
+        Ok(())
+    }
+
+    /// Appends to the store, if any; a failure is logged and counted, never fatal.
+    fn keep(s: &mut State, body: impl FnOnce(&State) -> Option<Body>) {
+        if s.store.is_none() {
+            return;
+        }
+        let Some(body) = body(s) else { return };
+        if let Some(store) = s.store.as_mut() {
+            if let Err(e) = store.append(body) {
+                tracing::error!("team: {e}");
+                s.stats.store_errors += 1;
+            }
+        }
     }
 
     fn lock(&self) -> MutexGuard<'_, State> {
@@ -166,6 +229,12 @@ impl Shared {
             .collect();
         s.features.insert(kf.id, features);
         s.stats.keyframes += 1;
+        let id = kf.id;
+        Self::keep(&mut s, |s| {
+            let k = key::symbol(s.robot, id).ok()?;
+            let features = s.features.get(&id)?;
+            to_packet(k, &s.calib, features, s.settings.max_packet_features).ok().map(Body::VerificationFeatures)
+        });
         Ok(())
     }
 
@@ -204,8 +273,16 @@ impl Shared {
         if let Err(e) = s.index.insert(q.clone()) {
             return refuse(&mut s, e.to_string());
         }
-        s.descriptors.insert(d.keyframe, q);
+        s.descriptors.insert(d.keyframe, q.clone());
         s.stats.descriptors += 1;
+        let (robot, keyframe) = (s.robot, d.keyframe);
+        Self::keep(&mut s, |_| {
+            Some(Body::Descriptors(Descriptors {
+                robot,
+                keyframes: keyframe..keyframe + 1,
+                descriptors: vec![q],
+            }))
+        });
         Ok(())
     }
 
@@ -603,6 +680,64 @@ mod tests {
         assert!(s.add_descriptor(&descriptor(1, 9, &unit(0))).is_err());
         assert!(s.add_descriptor(&descriptor(0, 9, &[1.0; 64])).is_err());
         assert_eq!(s.stats().refused_inputs, 2);
+    }
+
+    #[test]
+    fn a_restarted_team_link_offers_its_earlier_keyframes_again() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("b").join("team.own");
+        let x = SE3::identity();
+        let before = {
+            let s = Shared::new(1, calib(), MatchSettings::default());
+            s.open_store(&path).unwrap();
+            for id in 0..3 {
+                s.add_keyframe(&keyframe(1, id, &x)).unwrap();
+                s.add_descriptor(&descriptor(1, id, &unit(id as usize)))
+                    .unwrap();
+            }
+            let packet = Places(s.clone())
+                .verification_features(key::symbol(1, 2).unwrap())
+                .unwrap();
+            (Places(s).descriptors_since(0, 16), packet)
+        };
+        // The process dies mid-write: a torn record at the end.
+        let mut f = std::fs::OpenOptions::new()
+            .append(true)
+            .open(&path)
+            .unwrap();
+        std::io::Write::write_all(&mut f, &[200, 1, 0, 0, 9, 9]).unwrap();
+        drop(f);
+        let s = Shared::new(1, calib(), MatchSettings::default());
+        s.open_store(&path).unwrap();
+        assert_eq!(s.stats().restored_keyframes, 3);
+        assert_eq!(s.stats().restored_descriptors, 3);
+        assert_eq!(s.keyframes(), 3);
+        let mut places = Places(s.clone());
+        let again = places.descriptors_since(0, 16);
+        assert_eq!(again.keyframes, before.0.keyframes);
+        assert_eq!(again.descriptors, before.0.descriptors);
+        // The packet made from the restored features is the one sent before.
+        let packet = places
+            .verification_features(key::symbol(1, 2).unwrap())
+            .unwrap();
+        assert_eq!(packet, before.1);
+        // A received descriptor matches a restored keyframe.
+        let near = Descriptor::quantize(key::symbol(0, 7).unwrap(), &unit(1)).unwrap();
+        let m = places.match_descriptors(&RobotId::new("a").unwrap(), &[near]);
+        assert_eq!(m.len(), 1);
+        assert_eq!(m[0].candidate, key::symbol(1, 1).unwrap());
+        // New keyframes go on after the torn tail was cut off.
+        s.add_descriptor(&descriptor(1, 3, &unit(3))).unwrap();
+        let s2 = Shared::new(1, calib(), MatchSettings::default());
+        s2.open_store(&path).unwrap();
+        assert_eq!(s2.stats().restored_descriptors, 4);
+        // Garbage in the middle of the file: an error naming the file and offset.
+        std::fs::write(&path, [5, 0, 0, 0, 1, 2, 3, 4, 5]).unwrap();
+        let e = Shared::new(1, calib(), MatchSettings::default())
+            .open_store(&path)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("team.own") && e.contains("byte 0"), "{e}");
     }
 
     #[test]

@@ -174,6 +174,10 @@ pub fn run(
     stop: &AtomicBool,
 ) -> Result<Status, RunError> {
     let shared = Shared::new(robot_index, pieces.calibration, pieces.matching.clone());
+    // Own keyframes of earlier runs (a restart): offered to the peers again.
+    shared
+        .open_store(&section.run_dir.join(robot).join("team.own"))
+        .map_err(side_error)?;
     let mut side = IpcSide::open(robot, robot_index, shared)?;
     tracing::info!(
         robot,
