@@ -15,8 +15,8 @@ use doorslam_frontend::{verify, VerifyConfig};
 use doorslam_geometry::information::upper_from_matrix;
 use doorslam_geometry::{key, pose_to_array, reverse_measurement};
 use doorslam_ipc::wire::{
-    Body, Descriptor, Descriptors, Header, Information, LoopClosure, Match, Message, Pose,
-    RobotId, VerificationFeatures, DESCRIPTOR_DIM,
+    Body, Descriptor, Descriptors, Header, Information, LoopClosure, Match, Message, Pose, RobotId,
+    VerificationFeatures, DESCRIPTOR_DIM,
 };
 use doorslam_ipc::{EnvelopeEvent, Feature, Keyframe, PlaceDescriptor};
 use doorslam_place_recognition::MatchIndex;
@@ -233,7 +233,9 @@ impl Shared {
         Self::keep(&mut s, |s| {
             let k = key::symbol(s.robot, id).ok()?;
             let features = s.features.get(&id)?;
-            to_packet(k, &s.calib, features, s.settings.max_packet_features).ok().map(Body::VerificationFeatures)
+            to_packet(k, &s.calib, features, s.settings.max_packet_features)
+                .ok()
+                .map(Body::VerificationFeatures)
         });
         Ok(())
     }
