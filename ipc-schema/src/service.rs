@@ -108,8 +108,8 @@ pub fn create_node(role: &str) -> Result<(Node<ipc::Service>, u64), IpcError> {
         .try_into()
         .map_err(|e| IpcError::Node(format!("invalid node name {role:?}: {e:?}")))?;
     let mut config = Config::default();
-    if let Some(domain) = domain_from_env()? {
-        config.global.prefix = domain_prefix(&domain)?;
+    if let Some(prefix) = domain_prefix_from_env()? {
+        config.global.prefix = prefix;
     }
     let node = NodeBuilder::new()
         .name(&node_name)
@@ -129,14 +129,12 @@ pub fn create_node(role: &str) -> Result<(Node<ipc::Service>, u64), IpcError> {
 /// robots `a` never share a frame service.
 pub const DOMAIN_ENV: &str = "DOORSLAM_IPC_DOMAIN";
 
-/// The domain named by [`DOMAIN_ENV`], if set (non-empty).
-pub fn domain_from_env() -> Result<Option<String>, IpcError> {
+/// The file prefix of the domain named by [`DOMAIN_ENV`], if set (non-empty).
+fn domain_prefix_from_env(
+) -> Result<Option<iceoryx2_bb_system_types::file_name::FileName>, IpcError> {
     match std::env::var(DOMAIN_ENV) {
         Ok(d) if d.is_empty() => Ok(None),
-        Ok(d) => {
-            domain_prefix(&d)?;
-            Ok(Some(d))
-        }
+        Ok(d) => domain_prefix(&d).map(Some),
         Err(std::env::VarError::NotPresent) => Ok(None),
         Err(std::env::VarError::NotUnicode(_)) => Err(IpcError::Domain {
             domain: format!("{:?}", std::env::var_os(DOMAIN_ENV)),
@@ -173,3 +171,21 @@ pub fn cleanup_dead_nodes(node: &Node<ipc::Service>) -> u64 {
 /// Type aliases so service crates need not spell out iceoryx2's generics.
 pub type FramePublisher = Publisher<ipc::Service, StereoFrame, ()>;
 pub type FrameSubscriber = Subscriber<ipc::Service, StereoFrame, ()>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_domain_is_a_file_prefix_and_a_bad_one_is_named() {
+        let p = domain_prefix("demo4242").unwrap();
+        assert_eq!(p.as_bytes(), b"iox2_demo4242_");
+        for bad in ["a/b", "two words", &"x".repeat(33)] {
+            let e = domain_prefix(bad).unwrap_err().to_string();
+            assert!(
+                e.contains(&format!("{bad:?}")) && e.contains(DOMAIN_ENV),
+                "{e}"
+            );
+        }
+    }
+}

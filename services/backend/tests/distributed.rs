@@ -179,6 +179,20 @@ fn pair(method: Method) -> (Agent, Agent) {
     (a, b)
 }
 
+/// `rounds` of: a steps and sends to b, b steps and sends to a (no loss).
+fn exchange(a: &mut Agent, b: &mut Agent, rounds: usize) {
+    for _ in 0..rounds {
+        a.step().unwrap();
+        for m in a.messages_for(1).unwrap() {
+            b.receive(0, &m).unwrap();
+        }
+        b.step().unwrap();
+        for m in b.messages_for(0).unwrap() {
+            a.receive(1, &m).unwrap();
+        }
+    }
+}
+
 fn estimates(a: &Agent) -> Vec<(u64, [f64; 7])> {
     a.estimate()
         .map(|(k, x)| (k, doorslam_geometry::pose_to_array(x)))
@@ -209,16 +223,7 @@ fn from_b(sequence: u64, key: u64, pose: SE3) -> Message {
 #[test]
 fn malformed_stale_and_out_of_order_messages_change_nothing() {
     let (mut a, mut b) = pair(Method::Dgs);
-    for _ in 0..30 {
-        a.step().unwrap();
-        for m in a.messages_for(1).unwrap() {
-            b.receive(0, &m).unwrap();
-        }
-        b.step().unwrap();
-        for m in b.messages_for(0).unwrap() {
-            a.receive(1, &m).unwrap();
-        }
-    }
+    exchange(&mut a, &mut b, 30);
     let before = estimates(&a);
     // An estimate of a pose that shares no closure with robot a: refused.
     let b2 = key::symbol(1, 2).unwrap();
@@ -703,16 +708,7 @@ fn a_robot_whose_solver_leaves_keeps_the_solution_it_got() {
     // a solves the pair; then a leaves range with nothing new on b's side: b takes over,
     // and keeps a's solution (solving alone, closures to a's poses would hang free).
     let (mut a, mut b) = pair(Method::Condensed);
-    for _ in 0..12 {
-        a.step().unwrap();
-        for m in a.messages_for(1).unwrap() {
-            b.receive(0, &m).unwrap();
-        }
-        b.step().unwrap();
-        for m in b.messages_for(0).unwrap() {
-            a.receive(1, &m).unwrap();
-        }
-    }
+    exchange(&mut a, &mut b, 12);
     assert!(a.solves_team() && b.converged() && b.anchor() == 0);
     let before = estimates(&b);
     b.set_present(0, false);

@@ -134,12 +134,7 @@ impl TeamLink {
     fn forget(&mut self) {
         self.route = None;
         self.route_sequence = None;
-        self.route_out.clear();
-        self.route_held = None;
-        self.graph_out.clear();
-        self.graphs_held.clear();
-        self.est_out.clear();
-        self.est_held.clear();
+        self.link_restarted();
     }
 
     /// The transport between us restarted (not the neighbour): what was in flight may be
