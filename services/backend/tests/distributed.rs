@@ -147,14 +147,18 @@ fn nine_robots_condensed() {
 
 /// Two robots' agents sharing one closure a1 — b0.
 fn pair(method: Method) -> (Agent, Agent) {
+    pair_with(AgentOptions {
+        method,
+        ..AgentOptions::default()
+    })
+}
+
+/// Robots a and b, three poses each, one closure a1 → b0, both present.
+fn pair_with(opts: AgentOptions) -> (Agent, Agent) {
     let info = matrix_from_upper(&upper_from_diagonal([1e4, 1e4, 1e4, 100.0, 100.0, 100.0]));
     let step = SE3::exp(&doorslam_geometry::Tangent::from_row_slice(&[
         0.0, 0.0, 0.1, 1.0, 0.0, 0.0,
     ]));
-    let opts = AgentOptions {
-        method,
-        ..AgentOptions::default()
-    };
     let mut agents = Vec::new();
     for r in 0..2u8 {
         let mut a = Agent::new(r, RobotId::new(&format!("r{r}")).unwrap(), 1, opts.clone());
@@ -722,4 +726,42 @@ fn a_robot_whose_solver_leaves_keeps_the_solution_it_got() {
         before,
         "b's estimate changed without new information"
     );
+}
+
+#[test]
+fn a_robot_whose_closures_pcm_rejects_settles_alone_in_its_frame() {
+    // The pair's one closure is alone between two robots: PCM (min clique 2, no third
+    // robot for a cycle) rejects it. b is told its separators in its own frame and
+    // settles, instead of waiting for a solution that never names it.
+    let (mut a, mut b) = pair_with(AgentOptions {
+        method: Method::Condensed,
+        pcm: Some(doorslam_backend::distributed::condensed::PcmSettings {
+            threshold: 0.99,
+            min_clique: 2,
+            cycles: true,
+        }),
+        ..AgentOptions::default()
+    });
+    let odometry = estimates(&b);
+    exchange(&mut a, &mut b, 12);
+    assert_eq!(
+        a.rejected_closures().len(),
+        1,
+        "{:?}",
+        a.rejected_closures()
+    );
+    assert!(
+        a.converged() && b.converged(),
+        "a {} b {} (b anchored {})",
+        a.converged(),
+        b.converged(),
+        b.anchored()
+    );
+    assert_eq!((a.anchor(), b.anchor()), (0, 1));
+    // Its own frame: the odometry, first separator (b0) at the identity.
+    for ((k, x), (_, o)) in estimates(&b).iter().zip(&odometry) {
+        for i in 0..7 {
+            assert!((x[i] - o[i]).abs() < 1e-6, "{k}: {x:?} vs {o:?}");
+        }
+    }
 }

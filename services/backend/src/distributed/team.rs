@@ -504,6 +504,17 @@ impl Agent {
                 .separators
                 .insert(k, x);
         }
+        // Robots whose graph was used but that PCM left outside the connected part (every
+        // closure of theirs rejected) are alone, each in its own frame: they get their
+        // separators as their own odometry places them, so they settle instead of waiting
+        // for a solution that would never name them.
+        for (&r, held) in &self.team.graphs {
+            if !solutions.contains_key(&r) {
+                if let Some(alone) = alone(r, held, &self.team.graphs, self.team.rounds)? {
+                    solutions.insert(r, alone);
+                }
+            }
+        }
         let solutions = keep_frame(self.team.solutions.get(&self.robot), self.robot, solutions);
         if solutions.get(&self.robot) != self.team.solutions.get(&self.robot) {
             self.team.interior_dirty = true;
@@ -1072,6 +1083,49 @@ fn graph_update(
     })
 }
 
+/// Robot `r`'s separators in its own frame (its first separator at the identity), from its
+/// condensed graph without its inter-robot closures: what a robot that PCM left alone is
+/// told by the solver. Its first separator may appear only in a closure another robot
+/// reports (a robot with one separator has no chain edge), hence every graph held.
+fn alone(
+    r: u8,
+    held: &Held,
+    graphs: &BTreeMap<u8, Held>,
+    round: u64,
+) -> Result<Option<Solution>, DpgoError> {
+    let own: Vec<CondensedEdge> = held
+        .edges
+        .iter()
+        .filter(|e| key::robot(e.a) == Some(r) && key::robot(e.b) == Some(r))
+        .cloned()
+        .collect();
+    let first = graphs
+        .values()
+        .flat_map(|h| h.edges.iter())
+        .flat_map(|e| [e.a, e.b])
+        .filter(|k| key::robot(*k) == Some(r))
+        .min();
+    let Some(first) = first else {
+        return Ok(None);
+    };
+    let separators: BTreeMap<u64, SE3> = if own.is_empty() {
+        BTreeMap::from([(first, SE3::identity())])
+    } else {
+        let graphs = BTreeMap::from([(r, own.as_slice())]);
+        condensed::solve_separators(&graphs, first, None)?
+            .0
+            .into_iter()
+            .filter(|(k, _)| key::robot(*k) == Some(r))
+            .collect()
+    };
+    Ok(Some(Solution {
+        anchor: r,
+        version: held.version,
+        round,
+        separators,
+    }))
+}
+
 /// Keeps a lower robot's frame when that robot left and this one solves now.
 ///
 /// A robot that solved in the frame of a lower robot (its solver, now out of range) and
@@ -1105,7 +1159,7 @@ fn keep_frame(
         return solutions;
     };
     let t = old * new.inverse();
-    for s in solutions.values_mut() {
+    for s in solutions.values_mut().filter(|s| s.anchor == new_anchor) {
         s.anchor = previous.anchor;
         for x in s.separators.values_mut() {
             *x = t * *x;
