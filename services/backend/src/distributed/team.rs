@@ -509,9 +509,9 @@ impl Agent {
         // separators as their own odometry places them, so they settle instead of waiting
         // for a solution that would never name them.
         for (&r, held) in &self.team.graphs {
-            if !solutions.contains_key(&r) {
+            if let std::collections::btree_map::Entry::Vacant(slot) = solutions.entry(r) {
                 if let Some(alone) = alone(r, held, &self.team.graphs, self.team.rounds)? {
-                    solutions.insert(r, alone);
+                    slot.insert(alone);
                 }
             }
         }
