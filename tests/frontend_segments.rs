@@ -7,12 +7,11 @@
 
 use doorslam_backend::journal::Entry;
 use doorslam_backend::service::BackendState;
-use doorslam_dataset::StereoCalibration;
 use doorslam_frontend::service::{fill_keyframe, ipc_edge, Calibration, FrontendState, Step};
 use doorslam_frontend::{TrackState, VoConfig};
 use doorslam_geometry::SE3;
-use doorslam_hil::flights::{simulate_team, FlightConfig};
-use doorslam_hil::{render_stereo, StereoCamera, World};
+use doorslam_hil::flights::one_robot_flight;
+use doorslam_hil::render_stereo;
 use doorslam_ipc::FrameHeader;
 
 const FRAMES: usize = 60;
@@ -27,25 +26,11 @@ struct Run {
 }
 
 fn run_frontend() -> Run {
-    let camera = StereoCamera::euroc_like();
-    let config = FlightConfig {
-        robots: 1,
-        frames: FRAMES,
-        rate_hz: RATE_HZ,
-        seed: 3,
-        ..FlightConfig::default()
-    };
-    let world = World::town(config.seed);
-    let team = simulate_team(&world, &camera, &config).expect("plan a flight");
+    let (world, team) = one_robot_flight(3, FRAMES, RATE_HZ).expect("plan a flight");
+    let camera = team.camera;
     let truth = team.flights[0].poses.clone();
     let calibration = Calibration {
-        stereo: StereoCalibration {
-            fx: camera.fx(),
-            fy: camera.fy(),
-            cx: camera.cx(),
-            cy: camera.cy(),
-            baseline_m: camera.baseline(),
-        },
+        stereo: camera.stereo_calibration(),
         width: camera.width(),
         height: camera.height(),
     };

@@ -118,6 +118,17 @@ impl StereoCamera {
         self.baseline
     }
 
+    /// The rectified stereo calibration the front-end takes (what `calib.txt` holds).
+    pub fn stereo_calibration(&self) -> doorslam_dataset::StereoCalibration {
+        doorslam_dataset::StereoCalibration {
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+            baseline_m: self.baseline,
+        }
+    }
+
     /// Pose of the right camera given the left camera's pose (both camera-to-world).
     pub fn right_pose(&self, left: &Isometry3<f64>) -> Isometry3<f64> {
         left * Translation3::new(self.baseline, 0.0, 0.0)

@@ -311,6 +311,27 @@ pub fn fly_team(world: &World, config: &FlightConfig) -> Result<Vec<Flight>, Fli
     Ok(flights)
 }
 
+/// One robot's flight of `frames` frames at `rate_hz` through the town of `seed`, seen by
+/// the EuRoC-like camera: the world and the planned team (`team.flights[0].poses` are the
+/// true left-camera poses; `team.camera` the camera). What the front-end's tests fly.
+pub fn one_robot_flight(
+    seed: u64,
+    frames: usize,
+    rate_hz: f64,
+) -> Result<(World, TeamFlight), FlightError> {
+    let camera = StereoCamera::euroc_like();
+    let config = FlightConfig {
+        robots: 1,
+        frames,
+        rate_hz,
+        seed,
+        ..FlightConfig::default()
+    };
+    let world = World::town(config.seed);
+    let team = simulate_team(&world, &camera, &config)?;
+    Ok((world, team))
+}
+
 /// Plans the team and derives its rendezvous events and closure candidates (the camera
 /// decides what counts as seen).
 pub fn simulate_team(

@@ -12,8 +12,8 @@ use doorslam_frontend::service::{
 };
 use doorslam_frontend::{TrackState, VoConfig};
 use doorslam_geometry::{LieGroup, SE3};
-use doorslam_hil::flights::{simulate_team, FlightConfig};
-use doorslam_hil::{render_stereo, StereoCamera, World};
+use doorslam_hil::flights::one_robot_flight;
+use doorslam_hil::render_stereo;
 use doorslam_ipc::FrameHeader;
 
 const FRAMES: usize = 40;
@@ -30,16 +30,8 @@ struct Flight {
 fn flight() -> &'static Flight {
     static FLIGHT: OnceLock<Flight> = OnceLock::new();
     FLIGHT.get_or_init(|| {
-        let camera = StereoCamera::euroc_like();
-        let config = FlightConfig {
-            robots: 1,
-            frames: FRAMES,
-            rate_hz: RATE_HZ,
-            seed: 3,
-            ..FlightConfig::default()
-        };
-        let world = World::town(config.seed);
-        let team = simulate_team(&world, &camera, &config).expect("plan a flight");
+        let (world, team) = one_robot_flight(3, FRAMES, RATE_HZ).expect("plan a flight");
+        let camera = team.camera;
         let (mut left, mut right) = (Vec::new(), Vec::new());
         for pose in &team.flights[0].poses {
             let pair = render_stereo(&world, &camera, pose);
@@ -51,13 +43,7 @@ fn flight() -> &'static Flight {
             height: camera.height(),
             left,
             right,
-            calib: StereoCalibration {
-                fx: camera.fx(),
-                fy: camera.fy(),
-                cx: camera.cx(),
-                cy: camera.cy(),
-                baseline_m: camera.baseline(),
-            },
+            calib: camera.stereo_calibration(),
         }
     })
 }

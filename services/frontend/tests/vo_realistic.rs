@@ -8,9 +8,9 @@ use std::sync::OnceLock;
 use doorslam_dataset::StereoCalibration;
 use doorslam_frontend::{FrameResult, Gray, LostReason, StereoVo, TrackState, VoConfig};
 use doorslam_geometry::{LieGroup, SE3};
-use doorslam_hil::flights::{simulate_team, FlightConfig, TeamCamera};
+use doorslam_hil::flights::{one_robot_flight, TeamCamera};
 use doorslam_hil::sensor::{digitize, CameraModel, FrameExposure, SensorModel};
-use doorslam_hil::{StereoCamera, World};
+use doorslam_hil::StereoCamera;
 
 const FRAMES: usize = 80;
 const RATE_HZ: f64 = 10.0;
@@ -37,16 +37,8 @@ struct Flight {
 fn flight() -> &'static Flight {
     static FLIGHT: OnceLock<Flight> = OnceLock::new();
     FLIGHT.get_or_init(|| {
-        let camera = StereoCamera::euroc_like();
-        let config = FlightConfig {
-            robots: 1,
-            frames: FRAMES,
-            rate_hz: RATE_HZ,
-            seed: 3,
-            ..FlightConfig::default()
-        };
-        let world = World::town(config.seed);
-        let team = simulate_team(&world, &camera, &config).expect("plan a flight");
+        let (world, team) = one_robot_flight(3, FRAMES, RATE_HZ).expect("plan a flight");
+        let camera = team.camera;
         let imaging = TeamCamera::new(&world, &team, CameraModel::Realistic(sensor()))
             .expect("a valid camera model");
         let (mut left, mut right, mut exposures) = (Vec::new(), Vec::new(), Vec::new());

@@ -7,8 +7,8 @@ use std::sync::OnceLock;
 use doorslam_dataset::StereoCalibration;
 use doorslam_frontend::{FrameResult, Gray, LostReason, StereoVo, TrackState, VoConfig};
 use doorslam_geometry::{LieGroup, SE3};
-use doorslam_hil::flights::{simulate_team, FlightConfig};
-use doorslam_hil::{render_stereo, StereoCamera, World};
+use doorslam_hil::flights::one_robot_flight;
+use doorslam_hil::render_stereo;
 
 const FRAMES: usize = 80;
 const RATE_HZ: f64 = 10.0;
@@ -27,16 +27,8 @@ struct Flight {
 fn flight() -> &'static Flight {
     static FLIGHT: OnceLock<Flight> = OnceLock::new();
     FLIGHT.get_or_init(|| {
-        let camera = StereoCamera::euroc_like();
-        let config = FlightConfig {
-            robots: 1,
-            frames: FRAMES,
-            rate_hz: RATE_HZ,
-            seed: 3,
-            ..FlightConfig::default()
-        };
-        let world = World::town(config.seed);
-        let team = simulate_team(&world, &camera, &config).expect("plan a flight");
+        let (world, team) = one_robot_flight(3, FRAMES, RATE_HZ).expect("plan a flight");
+        let camera = team.camera;
         let truth = team.flights[0].poses.clone();
         let (mut left, mut right) = (Vec::new(), Vec::new());
         for pose in &truth {
@@ -50,13 +42,7 @@ fn flight() -> &'static Flight {
             left,
             right,
             truth,
-            calib: StereoCalibration {
-                fx: camera.fx(),
-                fy: camera.fy(),
-                cx: camera.cx(),
-                cy: camera.cy(),
-                baseline_m: camera.baseline(),
-            },
+            calib: camera.stereo_calibration(),
         }
     })
 }
