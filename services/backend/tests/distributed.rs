@@ -183,6 +183,20 @@ fn pair_with(opts: AgentOptions) -> (Agent, Agent) {
     (a, b)
 }
 
+/// `rounds` of: b's messages to a, a's to b, then both step (no loss).
+fn deliver_then_step(a: &mut Agent, b: &mut Agent, rounds: usize) {
+    for _ in 0..rounds {
+        for m in b.messages_for(0).unwrap() {
+            a.receive(1, &m).unwrap();
+        }
+        for m in a.messages_for(1).unwrap() {
+            b.receive(0, &m).unwrap();
+        }
+        a.step().unwrap();
+        b.step().unwrap();
+    }
+}
+
 /// `rounds` of: a steps and sends to b, b steps and sends to a (no loss).
 fn exchange(a: &mut Agent, b: &mut Agent, rounds: usize) {
     for _ in 0..rounds {
@@ -335,16 +349,7 @@ fn a_malformed_condensed_graph_is_refused() {
     assert!(a.solves_team() && !b.solves_team());
     // The genuine one is resent (the altered copy was never acknowledged) and taken, and
     // both robots end at the same team estimate.
-    for _ in 0..12 {
-        for m in b.messages_for(0).unwrap() {
-            a.receive(1, &m).unwrap();
-        }
-        for m in a.messages_for(1).unwrap() {
-            b.receive(0, &m).unwrap();
-        }
-        a.step().unwrap();
-        b.step().unwrap();
-    }
+    deliver_then_step(&mut a, &mut b, 12);
     assert!(a.converged() && b.converged());
     let b_in_a_frame = {
         let x_a1 = a.estimate().nth(1).map(|(_, x)| *x).unwrap();
@@ -694,16 +699,7 @@ fn a_route_that_lies_and_an_update_of_an_unknown_version_are_not_taken() {
         |m| !matches!(&m.body, Body::Ack(x) if x.kind == doorslam_ipc::wire::Kind::SeparatorGraph)
     ));
     // The team still settles.
-    for _ in 0..10 {
-        for m in b.messages_for(0).unwrap() {
-            a.receive(1, &m).unwrap();
-        }
-        for m in a.messages_for(1).unwrap() {
-            b.receive(0, &m).unwrap();
-        }
-        a.step().unwrap();
-        b.step().unwrap();
-    }
+    deliver_then_step(&mut a, &mut b, 10);
     assert!(a.converged() && b.converged());
 }
 

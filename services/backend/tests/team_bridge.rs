@@ -145,12 +145,18 @@ fn max_error(robot: &Robot) -> f64 {
         .fold(0.0, f64::max)
 }
 
-#[test]
-fn two_robots_reach_the_true_team_estimate_through_the_relay() {
+/// Robots a and b (epoch 1, team epoch 1), each with the true closures between them.
+fn two_robots() -> (Robot, Robot) {
     let mut a = Robot::new(0, 1, 1);
     let mut b = Robot::new(1, 1, 1);
     a.add_true_closures();
     b.add_true_closures();
+    (a, b)
+}
+
+#[test]
+fn two_robots_reach_the_true_team_estimate_through_the_relay() {
+    let (mut a, mut b) = two_robots();
     a.announce(&b);
     b.announce(&a);
     let rounds = settle(&mut a, &mut b);
@@ -165,10 +171,7 @@ fn two_robots_reach_the_true_team_estimate_through_the_relay() {
 
 #[test]
 fn a_restarted_back_end_gets_the_team_estimate_back() {
-    let mut a = Robot::new(0, 1, 1);
-    let mut b = Robot::new(1, 1, 1);
-    a.add_true_closures();
-    b.add_true_closures();
+    let (mut a, mut b) = two_robots();
     a.announce(&b);
     b.announce(&a);
     settle(&mut a, &mut b);
@@ -189,10 +192,7 @@ fn a_restarted_back_end_gets_the_team_estimate_back() {
 
 #[test]
 fn a_restarted_team_link_makes_the_back_end_send_again() {
-    let mut a = Robot::new(0, 1, 1);
-    let mut b = Robot::new(1, 1, 1);
-    a.add_true_closures();
-    b.add_true_closures();
+    let (mut a, mut b) = two_robots();
     // The team links announce themselves; then a's link restarts before b heard anything.
     for r in [&mut a, &mut b] {
         let e = r.team_epoch;
