@@ -130,3 +130,103 @@ fn lie_group_math_exists_once() {
         }
     }
 }
+
+/// Source files (`.rs`) of a crate folder.
+fn sources_of(dir: &str) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    collect(Path::new(dir), &mut out, &|p| {
+        p.extension().is_some_and(|e| e == "rs")
+    });
+    assert!(!out.is_empty(), "{dir}: no sources");
+    out
+}
+
+#[test]
+fn opencv_feature_code_is_reached_only_through_the_vision_crate() {
+    // The front-end and place recognition (and the rendezvous crate, which composes them)
+    // reach OpenCV's features, descriptors, stereo, tracking and PnP only through
+    // services/vision: none of them lists opencv, nor names it in a source file.
+    for dir in [
+        "services/frontend",
+        "services/place-recognition",
+        "services/rendezvous",
+    ] {
+        let manifest = std::fs::read_to_string(Path::new(dir).join("Cargo.toml")).unwrap();
+        let lines = dependency_lines(&manifest);
+        assert!(
+            dir.ends_with("rendezvous") || lines.iter().any(|l| l.starts_with("doorslam-vision")),
+            "{dir}/Cargo.toml: the vision crate is how it reaches image code"
+        );
+        for line in &lines {
+            assert!(
+                !line.starts_with("opencv"),
+                "{dir}/Cargo.toml: {line}: OpenCV belongs to services/vision"
+            );
+        }
+        for s in sources_of(dir) {
+            let text = std::fs::read_to_string(&s).unwrap();
+            for needle in ["opencv::", "use opencv", "extern crate opencv"] {
+                assert!(
+                    !text.contains(needle),
+                    "{}: `{needle}`: OpenCV is reached through doorslam_vision",
+                    s.display()
+                );
+            }
+        }
+    }
+    // Only the vision crate (features, stereo, KLT, PnP) and the dataset crate (EuRoC's
+    // rectification maps, when a folder is read) link OpenCV.
+    for m in member_manifests() {
+        let text = std::fs::read_to_string(&m).unwrap();
+        if dependency_lines(&text)
+            .iter()
+            .any(|l| l.starts_with("opencv"))
+        {
+            assert!(
+                m.starts_with("services/vision") || m.starts_with("services/dataset"),
+                "{}: depends on opencv directly",
+                m.display()
+            );
+        }
+    }
+}
+
+#[test]
+fn the_front_end_and_place_recognition_do_not_depend_on_each_other() {
+    for (dir, other, module) in [
+        (
+            "services/frontend",
+            "doorslam-place-recognition",
+            "doorslam_place_recognition",
+        ),
+        (
+            "services/place-recognition",
+            "doorslam-frontend",
+            "doorslam_frontend",
+        ),
+    ] {
+        let manifest = std::fs::read_to_string(Path::new(dir).join("Cargo.toml")).unwrap();
+        for line in dependency_lines(&manifest) {
+            assert!(
+                !line.starts_with(other),
+                "{dir}/Cargo.toml: {line}: the two services share code only through services/vision"
+            );
+        }
+        for s in sources_of(dir) {
+            let text = std::fs::read_to_string(&s).unwrap();
+            // Doc comments may name the other crate; code may not use it.
+            for (n, line) in text.lines().enumerate() {
+                let code = line.trim_start();
+                if code.starts_with("//") {
+                    continue;
+                }
+                assert!(
+                    !code.contains(&format!("{module}::")),
+                    "{}:{}: uses {module}",
+                    s.display(),
+                    n + 1
+                );
+            }
+        }
+    }
+}

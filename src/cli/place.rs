@@ -209,9 +209,9 @@ fn describe_all(
     }
     let mut extractor = match (features, &*describer) {
         (FeaturesArg::Orb, _) => None,
-        (FeaturesArg::Frontend, Describer::BagOfWords(_)) => Some(
-            doorslam_frontend::stereo::Extractor::new(&doorslam_frontend::VoConfig::default())?,
-        ),
+        (FeaturesArg::Frontend, Describer::BagOfWords(_)) => Some(doorslam_vision::Extractor::new(
+            &doorslam_frontend::VoConfig::default().features(),
+        )?),
         (FeaturesArg::Frontend, Describer::NetVlad(_)) => {
             bail!("--features frontend is for the bag of words (NetVLAD describes images)")
         }

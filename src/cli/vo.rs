@@ -111,6 +111,12 @@ pub fn run(a: VoArgs) -> Result<()> {
             "edges": report.edges.len(),
             "ms_per_frame_mean": report.ms_per_frame.iter().sum::<f64>() / report.ms_per_frame.len().max(1) as f64,
             "load_ms_per_frame_median": quantile(&report.load_ms_per_frame, 0.5).unwrap_or(0.0),
+            "lost_by_reason": s
+                .lost_by_reason
+                .entries()
+                .iter()
+                .map(|&(name, n)| (name.to_string(), serde_json::Value::from(n)))
+                .collect::<serde_json::Map<_, _>>(),
             "detector": format!("{detector:?}").to_lowercase(),
             "threads": threads,
         });

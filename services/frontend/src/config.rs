@@ -4,18 +4,8 @@
 use doorslam_geometry::TangentMatrix;
 use serde::{Deserialize, Serialize};
 
-/// Which detector finds the left image's keypoints; descriptors are always 32-byte ORB.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "lowercase")]
-pub enum Detector {
-    /// Shi-Tomasi corners refined to sub-pixel (the paper's GFTT+ORB choice).
-    #[default]
-    Gftt,
-    /// FAST-9 corners, strongest first.
-    Fast,
-    /// ORB's own oriented FAST on an image pyramid (scale-invariant, slower).
-    Orb,
-}
+pub use doorslam_vision::Detector;
+use doorslam_vision::{FeatureConfig, KltConfig};
 
 /// Every threshold of [`crate::StereoVo`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -50,15 +40,48 @@ pub struct VoConfig {
     /// Errors every feature of an edge shares, which the residuals cannot show: the rig's
     /// calibration and rectification (and, against a dataset's ground truth, the ground
     /// truth's own noise). Added to each edge's covariance: the relative uncertainty of the
-    /// rig's scale (baseline, focal length) along the translation, and a rotation (degrees
-    /// per axis) and translation (m per axis) of their own. Set to 0 for a perfectly
-    /// calibrated (simulated) camera; the defaults are fitted to the KITTI 06 clip
-    /// (BENCHMARKS.md: edge NEES 632 → 13 there, 6.1 → 3.4 on a simulated flight).
+    /// rig's scale (baseline, focal length) along the translation, a rotation (degrees
+    /// per axis, plus degrees per metre the edge spans: these errors bend the path the
+    /// further it goes) and a translation (m per axis). Set to 0 for a perfectly
+    /// calibrated (simulated) camera; the defaults are fitted to the KITTI 06 clip's
+    /// per-frame and 3-frame errors (BENCHMARKS.md, "Stereo VO at drone speed").
     pub scale_sigma: f64,
     pub rotation_sigma_deg: f64,
+    /// ... and a rotation error growing with the edge's length (degrees per m).
+    pub rotation_sigma_deg_per_m: f64,
     pub translation_sigma_m: f64,
-    /// Search radius around the motion prior's prediction (px); tried twice as
-    /// `search_radius_px` then `wide_search_radius_px` when the first finds too few matches.
+    /// ... and a translation error per axis growing with the edge's length (m per m).
+    pub translation_sigma_per_m: f64,
+    /// Landmarks tracked from frame to frame (new ones are added at keyframes, strongest
+    /// corners first, away from the tracked ones).
+    pub max_tracks: usize,
+    /// Pyramidal KLT: half window (px), pyramid levels, and the largest mean absolute
+    /// difference (DN) of the brightness-matched windows at full resolution.
+    pub klt_window_radius: usize,
+    pub klt_levels: usize,
+    pub klt_max_residual_dn: f64,
+    /// Smallest eigenvalue of a window's gradient matrix per pixel ((DN/px)²): flatter
+    /// windows are not tracked.
+    pub klt_min_eigenvalue: f64,
+    /// A point tracked back from the current frame must land within this (px) of where
+    /// it started (forward-backward consistency).
+    pub klt_max_back_error_px: f64,
+    /// Of the tracked points, at least this fraction must be inliers of the pose: fewer
+    /// means the frame does not show what the track expected (another place, a swapped
+    /// camera), a loss rather than a pose.
+    pub min_inlier_fraction: f64,
+    /// The pose must agree with the constant-velocity prediction within this rotation
+    /// (degrees) and translation (m), each growing with the time since the last frame:
+    /// `bound × max(1, dt / 0.1 s)²` (a drone cannot change its motion faster).
+    pub max_prediction_error_deg: f64,
+    pub max_prediction_error_m: f64,
+    /// Keyframes in the local bundle adjustment's window (the oldest one is held fixed),
+    /// and its Levenberg-Marquardt steps at most.
+    pub window_keyframes: usize,
+    pub window_iterations: usize,
+    /// Unused since the tracking is KLT (kept so existing robot.toml files still load):
+    /// the search radii and descriptor thresholds of the former frame-to-keyframe
+    /// descriptor matching.
     pub search_radius_px: f64,
     pub wide_search_radius_px: f64,
     /// Largest Hamming distance of an accepted descriptor match (of 256 bits).
@@ -117,8 +140,21 @@ impl Default for VoConfig {
             disparity_sigma_px: 0.5,
             posterior_variance: true,
             scale_sigma: 0.0075,
-            rotation_sigma_deg: 0.03,
-            translation_sigma_m: 0.006,
+            rotation_sigma_deg: 0.02,
+            rotation_sigma_deg_per_m: 0.025,
+            translation_sigma_m: 0.003,
+            translation_sigma_per_m: 0.005,
+            max_tracks: 600,
+            klt_window_radius: 5,
+            klt_levels: 4,
+            klt_max_residual_dn: 14.0,
+            klt_min_eigenvalue: 0.5,
+            klt_max_back_error_px: 1.0,
+            min_inlier_fraction: 0.3,
+            max_prediction_error_deg: 8.0,
+            max_prediction_error_m: 1.5,
+            window_keyframes: 6,
+            window_iterations: 6,
             search_radius_px: 20.0,
             wide_search_radius_px: 80.0,
             max_hamming: 64,
@@ -175,6 +211,11 @@ impl VoConfig {
             ("ransac_threshold_px", self.ransac_threshold_px),
             ("outlier_chi2", self.outlier_chi2),
             ("keyframe_max_distance_m", self.keyframe_max_distance_m),
+            ("klt_max_residual_dn", self.klt_max_residual_dn),
+            ("klt_min_eigenvalue", self.klt_min_eigenvalue),
+            ("klt_max_back_error_px", self.klt_max_back_error_px),
+            ("max_prediction_error_deg", self.max_prediction_error_deg),
+            ("max_prediction_error_m", self.max_prediction_error_m),
             ("keyframe_max_rotation_deg", self.keyframe_max_rotation_deg),
             ("keyframe_max_parallax_px", self.keyframe_max_parallax_px),
             ("max_frame_gap_s", self.max_frame_gap_s),
@@ -200,6 +241,7 @@ impl VoConfig {
                 "keyframe_min_tracked_fraction",
                 self.keyframe_min_tracked_fraction,
             ),
+            ("min_inlier_fraction", self.min_inlier_fraction),
         ] {
             if !(0.0..=1.0).contains(&value) {
                 return Err(bad(field, &value, "must be in [0, 1]"));
@@ -225,6 +267,37 @@ impl VoConfig {
                 &self.max_disparity_px,
                 "must be 4..=512",
             ));
+        }
+        if !(self.min_inliers..=20_000).contains(&self.max_tracks) {
+            return Err(bad(
+                "max_tracks",
+                &self.max_tracks,
+                "must be min_inliers..=20000",
+            ));
+        }
+        if !(1..=15).contains(&self.klt_window_radius) {
+            return Err(bad(
+                "klt_window_radius",
+                &self.klt_window_radius,
+                "must be 1..=15",
+            ));
+        }
+        if !(2..=20).contains(&self.window_keyframes) {
+            return Err(bad(
+                "window_keyframes",
+                &self.window_keyframes,
+                "must be 2..=20",
+            ));
+        }
+        if !(1..=50).contains(&self.window_iterations) {
+            return Err(bad(
+                "window_iterations",
+                &self.window_iterations,
+                "must be 1..=50",
+            ));
+        }
+        if !(1..=8).contains(&self.klt_levels) {
+            return Err(bad("klt_levels", &self.klt_levels, "must be 1..=8"));
         }
         if self.max_hamming > 256 {
             return Err(bad("max_hamming", &self.max_hamming, "must be <= 256"));
@@ -271,6 +344,24 @@ impl VoConfig {
                 "must be in [0, 10)",
             ));
         }
+        if !(self.rotation_sigma_deg_per_m.is_finite()
+            && (0.0..10.0).contains(&self.rotation_sigma_deg_per_m))
+        {
+            return Err(bad(
+                "rotation_sigma_deg_per_m",
+                &self.rotation_sigma_deg_per_m,
+                "must be in [0, 10)",
+            ));
+        }
+        if !(self.translation_sigma_per_m.is_finite()
+            && (0.0..1.0).contains(&self.translation_sigma_per_m))
+        {
+            return Err(bad(
+                "translation_sigma_per_m",
+                &self.translation_sigma_per_m,
+                "must be in [0, 1)",
+            ));
+        }
         if !(self.translation_sigma_m.is_finite()
             && (0.0..10.0).contains(&self.translation_sigma_m))
         {
@@ -298,6 +389,33 @@ impl VoConfig {
 }
 
 impl VoConfig {
+    /// The feature extractor's and row stereo's share of the settings.
+    pub fn features(&self) -> FeatureConfig {
+        FeatureConfig {
+            detector: self.detector,
+            max_features: self.max_features,
+            min_feature_distance_px: self.min_feature_distance_px,
+            gftt_quality: self.gftt_quality,
+            fast_threshold: self.fast_threshold,
+            stereo_window_radius: self.stereo_window_radius,
+            max_disparity_px: self.max_disparity_px,
+            min_disparity_px: self.min_disparity_px,
+            stereo_uniqueness: self.stereo_uniqueness,
+            stereo_max_mean_abs_diff: self.stereo_max_mean_abs_diff,
+        }
+    }
+
+    /// The KLT tracker's settings.
+    pub fn klt(&self) -> KltConfig {
+        KltConfig {
+            window_radius: self.klt_window_radius,
+            levels: self.klt_levels,
+            max_residual_dn: self.klt_max_residual_dn as f32,
+            min_eigenvalue: self.klt_min_eigenvalue as f32,
+            ..KltConfig::default()
+        }
+    }
+
     /// Information of the weak prior that links a new segment to the previous one after
     /// `seconds_lost` (at least one second): the standard deviations grow with the time.
     pub fn segment_prior_information(&self, seconds_lost: f64) -> TangentMatrix {

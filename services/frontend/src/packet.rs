@@ -20,7 +20,7 @@ use doorslam_ipc::wire::{
 };
 
 use crate::keyframe::{Feature, Keyframe};
-use crate::stereo::triangulate;
+use doorslam_vision::triangulate;
 
 /// Most features a packet carries: 500 × 38 bytes + camera + header ≤ 19.1 kB.
 pub const MAX_PACKET_FEATURES: usize = 500;

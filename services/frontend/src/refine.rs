@@ -1,29 +1,32 @@
 //! Nonlinear refinement of a camera motion against stereo points, and the information
 //! matrix of the result.
 //!
-//! Each correspondence is a keyframe point `P` (triangulated from its measurement
-//! `m_k = (u, v, d)` in the keyframe) seen again as `m_c` in the current frame. With `X`
-//! the current camera's pose in the keyframe frame and `p = X⁻¹ P`, the residual is
-//! `r = h(p) − m_c`, `h(p) = (fx x/z + cx, fy y/z + cy, fx b / z)`: a stereo reprojection
-//! error (two rows when the current frame has no disparity for the point). Both
-//! measurements are noisy, so `r` has covariance
-//! `Σr = S + A S Aᵀ`, `S = diag(σu², σv², σd²)`, `A = ∂h/∂p · ∂p/∂P · ∂P/∂m_k`:
-//! far points, whose depth is poor, weigh little in the directions their depth moves them.
+//! Each correspondence is a point `P` of a reference frame (a keyframe's triangulation, or
+//! a map point fused from several), with covariance `ΣP`, seen as `m_c = (u, v, d)` in the
+//! current frame. With `X` the current camera's pose in the reference frame and
+//! `p = X⁻¹ P`, the residual is `r = h(p) − m_c`, `h(p) = (fx x/z + cx, fy y/z + cy,
+//! fx b / z)`: a stereo reprojection error (two rows when the current frame has no
+//! disparity for the point). Both are uncertain, so `r` has covariance
+//! `Σr = S + A ΣP Aᵀ`, `S = diag(σu², σv², σd²)`, `A = ∂h/∂p · ∂p/∂P`: far points, whose
+//! depth is poor, weigh little in the directions their depth moves them. A point
+//! triangulated from one stereo measurement has `ΣP = G S Gᵀ`, `G = ∂P/∂(u, v, d)`
+//! ([`stereo_point_covariance`]).
 //! Gauss-Newton minimises `Σ rᵀ Σr⁻¹ r` over `X ⊕ δ`; the information of the estimate is
 //! `Σ Jᵀ Σr⁻¹ J` at the optimum, `J = ∂h/∂p · ∂p/∂δ` (rotation first).
 
+use doorslam_vision::triangulation_jacobian;
 use nalgebra::{Matrix2, Matrix3, Matrix3x6, Vector3};
 
 use doorslam_dataset::StereoCalibration;
 use doorslam_geometry::{inverse_action_jacobian, LieGroup, Tangent, TangentMatrix, SE3};
 
-/// A keyframe point matched in the current frame.
+/// A reference-frame point matched in the current frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Correspondence {
-    /// The point in the keyframe's camera frame.
+    /// The point in the reference frame (a keyframe's camera frame).
     pub point: Vector3<f64>,
-    /// `∂P/∂(u, v, d)` at the keyframe measurement ([`crate::stereo::triangulation_jacobian`]).
-    pub point_jacobian: Matrix3<f64>,
+    /// Its covariance in that frame (m²).
+    pub point_covariance: Matrix3<f64>,
     /// Its measurement in the current frame.
     pub pixel: [f64; 2],
     pub disparity: Option<f64>,
@@ -47,8 +50,36 @@ pub struct Noise {
     /// (rectification and calibration errors of a real rig, which bias the pose without
     /// showing in the residuals): `Σ += σ² I` on the rotation block (0: none).
     pub rotation_sigma_rad: f64,
+    /// A rotation error that grows with the distance the edge spans (rad per m of
+    /// translation): a rig's calibration errors bend the path the further it goes.
+    pub rotation_sigma_rad_per_m: f64,
     /// The same for the translation (m per axis): `Σ += σ² I` on the translation block.
     pub translation_sigma_m: f64,
+    /// A translation error per axis growing with the edge's length (m per m).
+    pub translation_sigma_per_m: f64,
+}
+
+impl Noise {
+    /// `S = diag(σu², σv², σd²)`: the covariance of one stereo measurement (u, v, d).
+    pub fn measurement(&self) -> Matrix3<f64> {
+        Matrix3::from_diagonal(&Vector3::new(
+            self.pixel_sigma_px.powi(2),
+            self.pixel_sigma_px.powi(2),
+            self.disparity_sigma_px.powi(2),
+        ))
+    }
+}
+
+/// `ΣP = G S Gᵀ` of the point triangulated from `(u, v, d)`, `G = ∂P/∂(u, v, d)`.
+pub fn stereo_point_covariance(
+    calib: &StereoCalibration,
+    noise: &Noise,
+    u: f64,
+    v: f64,
+    d: f64,
+) -> Matrix3<f64> {
+    let g = triangulation_jacobian(calib, u, v, d);
+    g * noise.measurement() * g.transpose()
 }
 
 /// A refined motion.
@@ -104,13 +135,9 @@ fn linearize(
         0.0,
         -fx * b * iz * iz,
     );
-    let s = Matrix3::from_diagonal(&Vector3::new(
-        noise.pixel_sigma_px.powi(2),
-        noise.pixel_sigma_px.powi(2),
-        noise.disparity_sigma_px.powi(2),
-    ));
-    let a = dh * rt * c.point_jacobian;
-    let cov = s + a * s * a.transpose();
+    let s = noise.measurement();
+    let a = dh * rt;
+    let cov = s + a * c.point_covariance * a.transpose();
     let j = dh * inverse_action_jacobian(&p);
     let (r, w) = match c.disparity {
         Some(d) => (
@@ -144,6 +171,37 @@ fn with_scale_uncertainty(
     let denominator = 1.0 + u.dot(&w);
     (denominator.is_finite() && denominator > 0.0)
         .then(|| information - w * w.transpose() / denominator)
+}
+
+/// The information of a relative pose `pose` after adding the errors every feature
+/// shares ([`Noise::scale_sigma`], [`Noise::rotation_sigma_rad`],
+/// [`Noise::translation_sigma_m`]); `None` when the result is not positive definite.
+pub fn with_shared_errors(
+    information: &TangentMatrix,
+    pose: &SE3,
+    noise: &Noise,
+) -> Option<TangentMatrix> {
+    let mut information = *information;
+    if noise.scale_sigma > 0.0 {
+        information = with_scale_uncertainty(&information, pose, noise.scale_sigma)?;
+    }
+    let distance = pose.translation.vector.norm();
+    let rotation_variance =
+        noise.rotation_sigma_rad.powi(2) + (noise.rotation_sigma_rad_per_m * distance).powi(2);
+    let translation_variance =
+        noise.translation_sigma_m.powi(2) + (noise.translation_sigma_per_m * distance).powi(2);
+    if rotation_variance > 0.0 || translation_variance > 0.0 {
+        let mut covariance = information.try_inverse()?;
+        for k in 0..3 {
+            covariance[(k, k)] += rotation_variance;
+            covariance[(k + 3, k + 3)] += translation_variance;
+        }
+        information = covariance.try_inverse()?;
+    }
+    // Symmetric to rounding: mirror the upper triangle so downstream checks see exact symmetry.
+    let information = 0.5 * (information + information.transpose());
+    information.cholesky()?;
+    Some(information)
 }
 
 /// Gauss-Newton from `initial` on the correspondences `start` (RANSAC's inliers), then
@@ -228,20 +286,7 @@ pub fn refine(
             information /= variance_factor;
         }
     }
-    if noise.scale_sigma > 0.0 {
-        information = with_scale_uncertainty(&information, &pose, noise.scale_sigma)?;
-    }
-    if noise.rotation_sigma_rad > 0.0 || noise.translation_sigma_m > 0.0 {
-        let mut covariance = information.try_inverse()?;
-        for k in 0..3 {
-            covariance[(k, k)] += noise.rotation_sigma_rad.powi(2);
-            covariance[(k + 3, k + 3)] += noise.translation_sigma_m.powi(2);
-        }
-        information = covariance.try_inverse()?;
-    }
-    // Symmetric to rounding: mirror the upper triangle so downstream checks see exact symmetry.
-    let information = 0.5 * (information + information.transpose());
-    information.cholesky()?;
+    let information = with_shared_errors(&information, &pose, noise)?;
     Some(Refined {
         pose,
         information,

@@ -8,10 +8,10 @@ use doorslam_dataset::{Dataset, DatasetError};
 use doorslam_geometry::SE3;
 
 use crate::config::VoConfig;
-use crate::features::FrontendError;
+use crate::error::FrontendError;
 use crate::keyframe::{Keyframe, OdometryEdge, SegmentLink};
-use crate::stereo::Gray;
 use crate::vo::{StereoVo, TrackState, VoStats};
+use doorslam_vision::Gray;
 
 /// Failures of a dataset run.
 #[derive(Debug, thiserror::Error)]
@@ -86,8 +86,8 @@ pub fn run_dataset(
         let t0 = Instant::now();
         let pair = stereo.prepare(dataset.load(k)?)?;
         let (w, h) = (pair.width as usize, pair.height as usize);
-        let left = Gray::new(w, h, &pair.left)?;
-        let right = Gray::new(w, h, &pair.right)?;
+        let left = Gray::new(w, h, &pair.left).map_err(FrontendError::from)?;
+        let right = Gray::new(w, h, &pair.right).map_err(FrontendError::from)?;
         let t1 = Instant::now();
         let c1 = thread_cpu_s();
         let files = &dataset.frames[k];

@@ -12,9 +12,8 @@ use doorslam_geometry::{TangentMatrix, SE3};
 use serde::{Deserialize, Serialize};
 
 use crate::keyframe::Feature;
-use crate::refine::{refine, Correspondence, Noise};
-use crate::stereo::triangulation_jacobian;
-use crate::vo::{hamming, pnp_from_points};
+use crate::refine::{refine, stereo_point_covariance, Correspondence, Noise};
+use doorslam_vision::{hamming, pnp_ransac as pnp_from_points};
 
 /// Thresholds of [`verify`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -188,6 +187,17 @@ pub fn verify(
         });
     }
     let disparity = |c: &StereoCalibration, f: &Feature| c.fx * c.baseline_m / f.point[2] as f64;
+    let noise = Noise {
+        pixel_sigma_px: config.pixel_sigma_px,
+        disparity_sigma_px: config.disparity_sigma_px,
+        posterior_variance: config.posterior_variance,
+        scale_sigma: config.scale_sigma,
+        rotation_sigma_rad: config.rotation_sigma_deg.to_radians(),
+        // Two views of one place: no path between them for calibration errors to bend.
+        rotation_sigma_rad_per_m: 0.0,
+        translation_sigma_per_m: 0.0,
+        translation_sigma_m: config.translation_sigma_m,
+    };
     let correspondences: Vec<Correspondence> = pairs
         .iter()
         .zip(&points)
@@ -196,8 +206,9 @@ pub fn verify(
             Correspondence {
                 point: *p,
                 // The remote point's covariance comes from the remote camera's noise.
-                point_jacobian: triangulation_jacobian(
+                point_covariance: stereo_point_covariance(
                     remote_calib,
+                    &noise,
                     fr.pixel[0] as f64,
                     fr.pixel[1] as f64,
                     disparity(remote_calib, fr),
@@ -207,14 +218,6 @@ pub fn verify(
             }
         })
         .collect();
-    let noise = Noise {
-        pixel_sigma_px: config.pixel_sigma_px,
-        disparity_sigma_px: config.disparity_sigma_px,
-        posterior_variance: config.posterior_variance,
-        scale_sigma: config.scale_sigma,
-        rotation_sigma_rad: config.rotation_sigma_deg.to_radians(),
-        translation_sigma_m: config.translation_sigma_m,
-    };
     let refined = refine(
         calib,
         &noise,

@@ -25,12 +25,12 @@ use doorslam_ipc::wire::RobotId;
 use nalgebra::{Quaternion, Translation3, UnitQuaternion};
 
 use crate::config::VoConfig;
-use crate::features::FrontendError;
+use crate::error::FrontendError;
 use crate::keyframe::Feature;
 use crate::packet::{from_packet, packet_file_bytes, to_packet, PacketError, MAX_PACKET_FEATURES};
-use crate::stereo::Gray;
 use crate::verify::{verify, Rejection, Verified, VerifyConfig};
 use crate::vo::StereoVo;
+use doorslam_vision::Gray;
 
 /// Failures of reading a benchmark folder.
 #[derive(Debug, thiserror::Error)]
@@ -111,8 +111,8 @@ impl Features {
         if !self.cache.contains_key(&key) {
             let pair = pair()?;
             let (w, h) = (pair.width as usize, pair.height as usize);
-            let left = Gray::new(w, h, &pair.left)?;
-            let right = Gray::new(w, h, &pair.right)?;
+            let left = Gray::new(w, h, &pair.left).map_err(FrontendError::from)?;
+            let right = Gray::new(w, h, &pair.right).map_err(FrontendError::from)?;
             let features = self.vo.keyframe_features(&left, &right)?;
             self.cache.insert(key.clone(), features);
         }

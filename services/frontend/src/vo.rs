@@ -1,26 +1,36 @@
-//! Stereo visual odometry (paper §III-A): frame-to-keyframe tracking of stereo points by
-//! descriptor matching around a constant-velocity prediction, PnP-RANSAC, refinement of
-//! the stereo reprojection error ([`crate::refine`]), keyframe selection, and the lost /
-//! re-initialize / new-segment cycle.
+//! Stereo visual odometry (paper §III-A). Each frame goes through the same stages:
+//!
+//! 1. **predict** the camera's pose from the last motion (constant velocity);
+//! 2. **track** the local map's landmarks from the previous frame by pyramidal KLT, seeded
+//!    where the prediction projects them, forward-backward checked, and measure their
+//!    disparity ([`crate::tracking`]);
+//! 3. **estimate** the pose against the landmarks (PnP-RANSAC, then the stereo
+//!    reprojection refinement) and **validate** it: enough inliers, a large enough share
+//!    of the tracks, agreement with the prediction, a plausible speed ([`crate::motion`]);
+//!    a pose that fails is a loss, never an output;
+//! 4. decide on a **keyframe**: its features (GFTT + ORB + stereo, what downstream
+//!    services get), the landmarks' fused positions ([`crate::map`]), new landmarks where
+//!    the image has none, and the odometry edge from the previous keyframe.
+//!
+//! Losses start a new segment on the next good frame, linked to the previous one by a
+//! weak prior; every loss is counted by its reason.
 
-use nalgebra::{Isometry3, Matrix3, Translation3, Vector3};
-use opencv::core::{Mat, Point2f, Point3f, Vector};
-use opencv::prelude::*;
+use nalgebra::Point3;
 
 use doorslam_dataset::StereoCalibration;
-use doorslam_geometry::{LieGroup, Tangent, SE3, SO3};
-
-use crate::config::VoConfig;
-use crate::features::FrontendError;
-use crate::keyframe::{Feature, Keyframe, OdometryEdge, SegmentLink};
-use crate::refine::{refine, Correspondence, Noise};
-use crate::stereo::{
-    triangulate, triangulation_jacobian, Extractor, FrameFeature, FrameFeatures, Gray,
+use doorslam_geometry::{LieGroup, Tangent, SE3};
+use doorslam_vision::{
+    triangulate, Extractor, FrameFeature, FrameFeatures, Gray, KltConfig, KltScratch, Pyramid,
+    VisionError,
 };
 
-fn cv(op: &'static str) -> impl FnOnce(opencv::Error) -> FrontendError {
-    move |source| FrontendError::OpenCv { op, source }
-}
+use crate::config::VoConfig;
+use crate::error::FrontendError;
+use crate::keyframe::{Feature, Keyframe, OdometryEdge, SegmentLink};
+use crate::map::{LocalMap, WindowEdge};
+use crate::motion::{estimate_motion, prediction_error, MotionSettings};
+use crate::refine::{with_shared_errors, Correspondence, Noise};
+use crate::tracking::{track_landmarks, TrackSettings, TrackedPoint};
 
 /// Why the odometry could not estimate a frame's pose.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -29,12 +39,32 @@ pub enum LostReason {
     BadImage { mean: f64, std: f64 },
     /// Too few stereo points to start a segment.
     TooFewPoints { points: usize },
-    /// Too few descriptor matches or PnP inliers against the keyframe.
+    /// Too few tracked landmarks or pose inliers among them.
     TrackingFailed { matches: usize, inliers: usize },
     /// The refined motion is faster than `max_speed_mps`.
     Implausible { speed_mps: f64 },
+    /// The pose disagrees with the motion prediction by more than a drone can change its
+    /// motion in the time (`max_prediction_error_deg`, `max_prediction_error_m`).
+    Unpredicted {
+        rotation_deg: f64,
+        translation_m: f64,
+    },
     /// Frames missing for longer than `max_frame_gap_s` (dropped frames, a stopped camera).
     Gap { seconds: f64 },
+}
+
+impl LostReason {
+    /// A short name per kind (the keys of `doorslam vo --json`'s `lost_by_reason`).
+    pub fn name(&self) -> &'static str {
+        match self {
+            LostReason::BadImage { .. } => "bad_image",
+            LostReason::TooFewPoints { .. } => "too_few_points",
+            LostReason::TrackingFailed { .. } => "tracking_failed",
+            LostReason::Implausible { .. } => "implausible",
+            LostReason::Unpredicted { .. } => "unpredicted",
+            LostReason::Gap { .. } => "gap",
+        }
+    }
 }
 
 impl std::fmt::Display for LostReason {
@@ -46,11 +76,18 @@ impl std::fmt::Display for LostReason {
             ),
             LostReason::TooFewPoints { points } => write!(f, "only {points} stereo points"),
             LostReason::TrackingFailed { matches, inliers } => {
-                write!(f, "tracking failed ({matches} matches, {inliers} inliers)")
+                write!(f, "tracking failed ({matches} tracked, {inliers} inliers)")
             }
             LostReason::Implausible { speed_mps } => {
                 write!(f, "implausible motion ({speed_mps:.1} m/s)")
             }
+            LostReason::Unpredicted {
+                rotation_deg,
+                translation_m,
+            } => write!(
+                f,
+                "pose {rotation_deg:.1} deg / {translation_m:.2} m away from the prediction"
+            ),
             LostReason::Gap { seconds } => write!(f, "no frames for {seconds:.2} s"),
         }
     }
@@ -61,7 +98,7 @@ impl std::fmt::Display for LostReason {
 pub enum TrackState {
     /// The frame started a segment (the first one, or after being lost).
     Initialized,
-    /// Tracked against the current keyframe.
+    /// Tracked against the local map.
     Tracking,
     /// No pose for this frame.
     Lost,
@@ -85,8 +122,45 @@ pub struct FrameResult {
     pub edge: Option<OdometryEdge>,
     /// The weak prior from the previous segment, when this frame starts a new one.
     pub link: Option<SegmentLink>,
-    /// PnP/refinement inliers against the keyframe (0 when not tracked).
+    /// Pose inliers among the tracked landmarks (0 when not tracked).
     pub inliers: usize,
+}
+
+/// Losses of a run by their reason ([`LostReason::name`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct LostByReason {
+    pub bad_image: u64,
+    pub too_few_points: u64,
+    pub tracking_failed: u64,
+    pub implausible: u64,
+    pub unpredicted: u64,
+    pub gap: u64,
+}
+
+impl LostByReason {
+    fn count(&mut self, reason: &LostReason) {
+        let slot = match reason {
+            LostReason::BadImage { .. } => &mut self.bad_image,
+            LostReason::TooFewPoints { .. } => &mut self.too_few_points,
+            LostReason::TrackingFailed { .. } => &mut self.tracking_failed,
+            LostReason::Implausible { .. } => &mut self.implausible,
+            LostReason::Unpredicted { .. } => &mut self.unpredicted,
+            LostReason::Gap { .. } => &mut self.gap,
+        };
+        *slot += 1;
+    }
+
+    /// (name, count) of every reason, in a fixed order.
+    pub fn entries(&self) -> [(&'static str, u64); 6] {
+        [
+            ("bad_image", self.bad_image),
+            ("too_few_points", self.too_few_points),
+            ("tracking_failed", self.tracking_failed),
+            ("implausible", self.implausible),
+            ("unpredicted", self.unpredicted),
+            ("gap", self.gap),
+        ]
+    }
 }
 
 /// Counters of a run.
@@ -99,23 +173,52 @@ pub struct VoStats {
     /// Frames without a pose.
     pub lost_frames: u64,
     pub segments: u32,
+    /// `lost`, split by the reason of each loss.
+    pub lost_by_reason: LostByReason,
 }
 
-/// The keyframe being tracked against: its stereo points only.
-#[derive(Debug, Clone)]
-struct ActiveKeyframe {
+impl std::ops::Add for LostByReason {
+    type Output = Self;
+    fn add(self, o: Self) -> Self {
+        Self {
+            bad_image: self.bad_image + o.bad_image,
+            too_few_points: self.too_few_points + o.too_few_points,
+            tracking_failed: self.tracking_failed + o.tracking_failed,
+            implausible: self.implausible + o.implausible,
+            unpredicted: self.unpredicted + o.unpredicted,
+            gap: self.gap + o.gap,
+        }
+    }
+}
+
+/// Counters of two odometry instances (a restarted camera's), together.
+impl std::ops::Add for VoStats {
+    type Output = Self;
+    fn add(self, o: Self) -> Self {
+        Self {
+            frames: self.frames + o.frames,
+            keyframes: self.keyframes + o.keyframes,
+            lost: self.lost + o.lost,
+            lost_frames: self.lost_frames + o.lost_frames,
+            segments: self.segments + o.segments,
+            lost_by_reason: self.lost_by_reason + o.lost_by_reason,
+        }
+    }
+}
+
+/// The keyframe the current frame's pose is estimated against.
+#[derive(Debug, Clone, Copy)]
+struct Reference {
     id: u64,
     pose: SE3,
-    points: Vec<Vector3<f64>>,
-    point_jacobians: Vec<Matrix3<f64>>,
-    pixels: Vec<[f32; 2]>,
-    descriptors: Vec<[u8; 32]>,
+    /// Landmarks tracked when it was made.
+    landmarks: usize,
 }
 
 /// The state while tracking.
 #[derive(Debug, Clone)]
 struct Track {
-    keyframe: ActiveKeyframe,
+    reference: Reference,
     /// Last frame's pose (world) and stamp.
     pose: SE3,
     stamp_ns: u64,
@@ -134,15 +237,30 @@ struct LastGood {
 }
 
 /// Stereo visual odometry on rectified pairs.
-#[derive(Debug)]
 pub struct StereoVo {
     calib: StereoCalibration,
     config: VoConfig,
     extractor: Extractor,
+    klt: KltConfig,
+    scratch: KltScratch,
+    /// The previous frame's pyramid and the current one's (swapped after each frame).
+    previous: Pyramid,
+    current: Pyramid,
+    map: LocalMap,
+    tracked: Vec<TrackedPoint>,
     track: Option<Track>,
     last_good: Option<LastGood>,
     next_keyframe: u64,
     stats: VoStats,
+}
+
+impl std::fmt::Debug for StereoVo {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StereoVo")
+            .field("stats", &self.stats)
+            .field("landmarks", &self.map.landmarks.len())
+            .finish()
+    }
 }
 
 /// Tells glibc's allocator to keep freed memory in the process (once per process): OpenCV
@@ -172,9 +290,15 @@ impl StereoVo {
     pub fn new(calib: StereoCalibration, config: VoConfig) -> Result<Self, FrontendError> {
         config.validate()?;
         keep_freed_memory();
-        opencv::core::set_num_threads(config.threads as i32).map_err(cv("setNumThreads"))?;
+        doorslam_vision::set_threads(config.threads)?;
         Ok(Self {
-            extractor: Extractor::new(&config)?,
+            extractor: Extractor::new(&config.features())?,
+            klt: config.klt(),
+            scratch: KltScratch::default(),
+            previous: Pyramid::default(),
+            current: Pyramid::default(),
+            map: LocalMap::default(),
+            tracked: Vec::new(),
             calib,
             config,
             track: None,
@@ -192,6 +316,19 @@ impl StereoVo {
         &self.config
     }
 
+    fn noise(&self) -> Noise {
+        Noise {
+            pixel_sigma_px: self.config.pixel_sigma_px,
+            disparity_sigma_px: self.config.disparity_sigma_px,
+            posterior_variance: self.config.posterior_variance,
+            scale_sigma: self.config.scale_sigma,
+            rotation_sigma_rad: self.config.rotation_sigma_deg.to_radians(),
+            rotation_sigma_rad_per_m: self.config.rotation_sigma_deg_per_m.to_radians(),
+            translation_sigma_m: self.config.translation_sigma_m,
+            translation_sigma_per_m: self.config.translation_sigma_per_m,
+        }
+    }
+
     /// Processes frame `frame` taken at `stamp_ns` (stamps must not decrease).
     pub fn process(
         &mut self,
@@ -201,11 +338,12 @@ impl StereoVo {
         right: &Gray<'_>,
     ) -> Result<FrameResult, FrontendError> {
         if (left.width, left.height) != (right.width, right.height) {
-            return Err(FrontendError::ImageSize {
+            return Err(VisionError::ImageSize {
                 width: right.width,
                 height: right.height,
                 bytes: right.pixels.len(),
-            });
+            }
+            .into());
         }
         self.stats.frames += 1;
         let mut gap_reason = None;
@@ -225,11 +363,15 @@ impl StereoVo {
                 return Ok(self.lost_frame(frame, LostReason::BadImage { mean, std }));
             }
         }
-        let features = self.extractor.extract(left, right)?;
+        self.current.build(left, self.klt.levels)?;
         let mut result = match self.track.is_some() {
-            true => self.track(frame, stamp_ns, &features),
-            false => self.initialize(frame, stamp_ns, &features),
+            true => self.track(frame, stamp_ns, left, right)?,
+            false => self.initialize(frame, stamp_ns, left, right)?,
         };
+        if result.state != TrackState::Lost {
+            // This frame is the one the next is tracked from.
+            std::mem::swap(&mut self.previous, &mut self.current);
+        }
         if gap_reason.is_some() {
             result.lost_reason = gap_reason;
         }
@@ -240,14 +382,16 @@ impl StereoVo {
     fn lose(&mut self, frame: u64, reason: LostReason) {
         if let Some(track) = self.track.take() {
             self.stats.lost += 1;
+            self.stats.lost_by_reason.count(&reason);
             tracing::warn!(frame, %reason, "visual odometry lost");
             self.last_good = Some(LastGood {
-                keyframe: track.keyframe.id,
-                keyframe_pose: track.keyframe.pose,
+                keyframe: track.reference.id,
+                keyframe_pose: track.reference.pose,
                 pose: track.pose,
                 stamp_ns: track.stamp_ns,
                 velocity: track.velocity,
             });
+            self.map.clear();
         }
     }
 
@@ -268,49 +412,6 @@ impl StereoVo {
         }
     }
 
-    /// Stereo points of a frame as a keyframe (`None` when too few).
-    fn make_keyframe(
-        &mut self,
-        frame: u64,
-        stamp_ns: u64,
-        pose: SE3,
-        features: &FrameFeatures,
-    ) -> Option<(ActiveKeyframe, Keyframe)> {
-        let stereo = stereo_points(features);
-        if stereo.len() < self.config.min_keyframe_points {
-            return None;
-        }
-        let id = self.next_keyframe;
-        self.next_keyframe += 1;
-        self.stats.keyframes += 1;
-        let mut active = ActiveKeyframe {
-            id,
-            pose,
-            points: Vec::with_capacity(stereo.len()),
-            point_jacobians: Vec::with_capacity(stereo.len()),
-            pixels: Vec::with_capacity(stereo.len()),
-            descriptors: Vec::with_capacity(stereo.len()),
-        };
-        for &(f, d) in &stereo {
-            let (u, v) = (f.pixel[0] as f64, f.pixel[1] as f64);
-            active.points.push(triangulate(&self.calib, u, v, d).coords);
-            active
-                .point_jacobians
-                .push(triangulation_jacobian(&self.calib, u, v, d));
-            active.pixels.push(f.pixel);
-            active.descriptors.push(f.descriptor);
-        }
-        let keyframe = Keyframe {
-            id,
-            segment: self.stats.segments.saturating_sub(1),
-            frame,
-            stamp_ns,
-            pose,
-            features: keyframe_features(&self.calib, &self.config, &stereo),
-        };
-        Some((active, keyframe))
-    }
-
     /// The features a keyframe made of this pair would carry (strongest first), without
     /// touching the odometry's state: for verifying arbitrary frames (benchmarks, tools).
     pub fn keyframe_features(
@@ -326,7 +427,102 @@ impl StereoVo {
         ))
     }
 
-    fn initialize(&mut self, frame: u64, stamp_ns: u64, features: &FrameFeatures) -> FrameResult {
+    /// A keyframe at `pose` from this frame: its features, the tracked landmarks'
+    /// measurements in it, the window adjusted (when `adjust`, returning the adjusted edge
+    /// from the previous keyframe), and new landmarks where the image has none. `None`, and
+    /// nothing changed, when the pair has too few stereo points.
+    fn make_keyframe(
+        &mut self,
+        frame: u64,
+        stamp_ns: u64,
+        pose: SE3,
+        images: (&Gray<'_>, &Gray<'_>),
+        adjust: bool,
+    ) -> Result<Option<(Reference, Keyframe, Option<WindowEdge>)>, FrontendError> {
+        let (left, right) = images;
+        let features = self.extractor.extract(left, right)?;
+        let stereo = stereo_points(&features);
+        if stereo.len() < self.config.min_keyframe_points {
+            return Ok(None);
+        }
+        let id = self.next_keyframe;
+        self.next_keyframe += 1;
+        self.stats.keyframes += 1;
+        let noise = self.noise();
+        self.map
+            .add_keyframe(&self.calib, &noise, id, pose, self.config.window_keyframes);
+        let edge = match adjust {
+            true => self.map.adjust(
+                &self.calib,
+                &noise,
+                self.config.outlier_chi2,
+                self.config.window_iterations,
+            ),
+            false => None,
+        };
+        let pose = self.map.newest_pose().unwrap_or(pose);
+        // New landmarks only in image cells without a tracked one.
+        let cell = self.config.min_feature_distance_px.max(2.0) as f32;
+        let cols = (left.width as f32 / cell) as usize + 1;
+        let rows = (left.height as f32 / cell) as usize + 1;
+        let mut occupied = vec![false; cols * rows];
+        let cell_of = |p: [f32; 2]| {
+            let (x, y) = ((p[0] / cell) as usize, (p[1] / cell) as usize);
+            x.min(cols - 1) + cols * y.min(rows - 1)
+        };
+        let mut tracked = 0;
+        for l in self.map.landmarks.iter().filter(|l| l.tracked) {
+            occupied[cell_of(l.pixel)] = true;
+            tracked += 1;
+        }
+        for &(f, d) in &stereo {
+            if tracked >= self.config.max_tracks {
+                break;
+            }
+            let c = cell_of(f.pixel);
+            if occupied[c] {
+                continue;
+            }
+            occupied[c] = true;
+            self.map
+                .add_landmark(&self.calib, &noise, id, &pose, f.pixel, d);
+            tracked += 1;
+        }
+        let keyframe = Keyframe {
+            id,
+            segment: self.stats.segments.saturating_sub(1),
+            frame,
+            stamp_ns,
+            pose,
+            features: keyframe_features(&self.calib, &self.config, &stereo),
+        };
+        let reference = Reference {
+            id,
+            pose,
+            landmarks: self.map.tracked(),
+        };
+        Ok(Some((reference, keyframe, edge)))
+    }
+
+    /// The information of an adjusted edge: the adjustment's covariance, scaled by its
+    /// a-posteriori variance factor when the residuals exceed the noise model, plus the
+    /// errors every feature shares.
+    fn adjusted_information(&self, edge: &WindowEdge) -> Option<nalgebra::Matrix6<f64>> {
+        let mut covariance = edge.covariance;
+        if self.config.posterior_variance && edge.variance_factor > 1.0 {
+            covariance *= edge.variance_factor;
+        }
+        let information = covariance.try_inverse()?;
+        with_shared_errors(&information, &edge.relative, &self.noise())
+    }
+
+    fn initialize(
+        &mut self,
+        frame: u64,
+        stamp_ns: u64,
+        left: &Gray<'_>,
+        right: &Gray<'_>,
+    ) -> Result<FrameResult, FrontendError> {
         // A new segment starts where the last one was seen, moved on by its last motion
         // over the time lost; the link's covariance says how little that guess is worth.
         let (pose, velocity) = match &self.last_good {
@@ -336,15 +532,15 @@ impl StereoVo {
             }
             None => (SE3::identity(), Tangent::zeros()),
         };
-        let points = features
-            .features
-            .iter()
-            .filter(|f| f.disparity.is_some())
-            .count();
+        self.map.clear();
         self.stats.segments += 1;
-        let Some((active, keyframe)) = self.make_keyframe(frame, stamp_ns, pose, features) else {
+        let Some((reference, keyframe, _)) =
+            self.make_keyframe(frame, stamp_ns, pose, (left, right), false)?
+        else {
             self.stats.segments -= 1;
-            return self.lost_frame(frame, LostReason::TooFewPoints { points });
+            let points = self.extractor.extract(left, right)?.features;
+            let points = points.iter().filter(|f| f.disparity.is_some()).count();
+            return Ok(self.lost_frame(frame, LostReason::TooFewPoints { points }));
         };
         let link = self.last_good.take().map(|g| SegmentLink {
             from: g.keyframe,
@@ -361,12 +557,12 @@ impl StereoVo {
             "visual odometry initialized"
         );
         self.track = Some(Track {
-            keyframe: active,
+            reference,
             pose,
             stamp_ns,
             velocity,
         });
-        FrameResult {
+        Ok(FrameResult {
             frame,
             state: TrackState::Initialized,
             lost_reason: None,
@@ -376,116 +572,136 @@ impl StereoVo {
             edge: None,
             link,
             inliers: 0,
-        }
+        })
     }
 
-    fn track(&mut self, frame: u64, stamp_ns: u64, features: &FrameFeatures) -> FrameResult {
-        let track = self.track.as_ref().expect("tracking");
-        let kf = &track.keyframe;
+    fn track(
+        &mut self,
+        frame: u64,
+        stamp_ns: u64,
+        left: &Gray<'_>,
+        right: &Gray<'_>,
+    ) -> Result<FrameResult, FrontendError> {
+        let track = self.track.clone().expect("tracking");
+        let reference = track.reference;
+
+        // 1. Predict.
         let dt = seconds(track.stamp_ns, stamp_ns);
         let predicted = track.pose.oplus(&(track.velocity * dt));
-        let prior = kf.pose.inverse() * predicted;
 
-        let mut pairs = match_projected(
-            kf,
-            &prior,
-            features,
-            &self.calib,
-            &self.config,
-            self.config.search_radius_px,
-        );
-        if pairs.len() < 4 * self.config.min_inliers {
-            let wide = match_projected(
-                kf,
-                &prior,
-                features,
-                &self.calib,
-                &self.config,
-                self.config.wide_search_radius_px,
-            );
-            if wide.len() > pairs.len() {
-                pairs = wide;
-            }
-        }
-        let fail = |inliers| LostReason::TrackingFailed {
-            matches: pairs.len(),
-            inliers,
+        // 2. Track the landmarks into this frame.
+        let features = self.config.features();
+        let settings = TrackSettings {
+            klt: &self.klt,
+            features: &features,
+            max_back_error_px: self.config.klt_max_back_error_px as f32,
         };
-        if pairs.len() < self.config.min_inliers {
-            return self.lost_frame(frame, fail(0));
-        }
-        let (pnp_pose, pnp_inliers) =
-            match pnp_ransac(kf, &pairs, features, &self.calib, &self.config) {
-                Ok(Some(x)) => x,
-                Ok(None) | Err(_) => return self.lost_frame(frame, fail(0)),
-            };
-        if pnp_inliers.len() < self.config.min_inliers {
-            return self.lost_frame(frame, fail(pnp_inliers.len()));
-        }
-        let correspondences: Vec<Correspondence> = pairs
+        let mut tracked = std::mem::take(&mut self.tracked);
+        let counts = track_landmarks(
+            &self.calib,
+            &self.map.landmarks,
+            &predicted,
+            &self.previous,
+            &self.current,
+            right,
+            &settings,
+            &mut self.scratch,
+            &mut tracked,
+        );
+        tracing::trace!(frame, ?counts, "tracked");
+
+        // 3. Estimate the pose in the reference keyframe's frame, and validate it.
+        let to_reference = reference.pose.inverse();
+        let r = to_reference.rotation.to_rotation_matrix().into_inner();
+        let correspondences: Vec<Correspondence> = tracked
             .iter()
-            .map(|&(k, c)| {
-                let f = &features.features[c];
+            .map(|t| {
+                let l = &self.map.landmarks[t.landmark];
                 Correspondence {
-                    point: kf.points[k],
-                    point_jacobian: kf.point_jacobians[k],
-                    pixel: [f.pixel[0] as f64, f.pixel[1] as f64],
-                    disparity: f.disparity.map(|d| d as f64),
+                    point: (to_reference * Point3::from(l.point)).coords,
+                    point_covariance: r * l.covariance * r.transpose(),
+                    pixel: [t.pixel[0] as f64, t.pixel[1] as f64],
+                    disparity: t.disparity.map(|d| d as f64),
                 }
             })
             .collect();
-        let noise = Noise {
-            pixel_sigma_px: self.config.pixel_sigma_px,
-            disparity_sigma_px: self.config.disparity_sigma_px,
-            posterior_variance: self.config.posterior_variance,
-            scale_sigma: self.config.scale_sigma,
-            rotation_sigma_rad: self.config.rotation_sigma_deg.to_radians(),
-            translation_sigma_m: self.config.translation_sigma_m,
+        let motion = MotionSettings {
+            noise: self.noise(),
+            ransac_iterations: self.config.ransac_iterations,
+            ransac_threshold_px: self.config.ransac_threshold_px,
+            outlier_chi2: self.config.outlier_chi2,
+            min_inliers: self.config.min_inliers,
+            min_inlier_fraction: self.config.min_inlier_fraction,
         };
-        let Some(refined) = refine(
-            &self.calib,
-            &noise,
-            &correspondences,
-            pnp_pose,
-            &pnp_inliers,
-            self.config.outlier_chi2,
-            self.config.min_inliers,
-        ) else {
-            return self.lost_frame(frame, fail(pnp_inliers.len()));
+        let prior = to_reference * predicted;
+        let refined = match estimate_motion(&self.calib, &correspondences, &prior, &motion) {
+            Ok(r) => r,
+            Err(failure) => {
+                self.tracked = tracked;
+                return Ok(self.lost_frame(
+                    frame,
+                    LostReason::TrackingFailed {
+                        matches: failure.correspondences,
+                        inliers: failure.inliers,
+                    },
+                ));
+            }
         };
-        let pose = kf.pose * refined.pose;
+        let pose = reference.pose * refined.pose;
         let step = track.pose.inverse() * pose;
         let speed = step.translation.vector.norm() / dt.max(1e-3);
         if speed > self.config.max_speed_mps {
-            return self.lost_frame(frame, LostReason::Implausible { speed_mps: speed });
+            self.tracked = tracked;
+            return Ok(self.lost_frame(frame, LostReason::Implausible { speed_mps: speed }));
         }
-        let velocity = if dt > 0.0 {
-            step.log() / dt
-        } else {
-            track.velocity
-        };
+        let (rotation_deg, translation_m) = prediction_error(&predicted, &pose);
+        let growth = (dt / 0.1).max(1.0).powi(2);
+        if rotation_deg > self.config.max_prediction_error_deg * growth
+            || translation_m > self.config.max_prediction_error_m * growth
+        {
+            self.tracked = tracked;
+            return Ok(self.lost_frame(
+                frame,
+                LostReason::Unpredicted {
+                    rotation_deg,
+                    translation_m,
+                },
+            ));
+        }
 
-        // Keyframe selection: the keyframe's points are running out, or the view has
-        // changed enough (distance, rotation, parallax) that a fresh set tracks better.
+        // The inliers stay tracked, at their new pixels; the rest are no longer followed.
+        let mut keep = vec![false; self.map.landmarks.len()];
+        let mut parallax = Vec::with_capacity(refined.inliers.len());
+        for &i in &refined.inliers {
+            let t = tracked[i];
+            let l = &mut self.map.landmarks[t.landmark];
+            l.pixel = t.pixel;
+            l.disparity = t.disparity;
+            if let Some(k) = l.keyframe_pixel {
+                parallax.push(((k[0] - t.pixel[0]).powi(2) + (k[1] - t.pixel[1]).powi(2)).sqrt());
+            }
+            keep[t.landmark] = true;
+        }
+        for (l, keep) in self.map.landmarks.iter_mut().zip(keep) {
+            l.tracked &= keep;
+        }
+        self.tracked = tracked;
+
+        // 4. Keyframe: the reference's landmarks are running out, or the view has changed
+        // enough (distance, rotation, parallax) that fresh ones track better.
         let inliers = refined.inliers.len();
-        let tracked_fraction = inliers as f64 / kf.points.len() as f64;
-        let mut parallax: Vec<f32> = refined
-            .inliers
-            .iter()
-            .map(|&i| {
-                let (k, c) = pairs[i];
-                let (a, b) = (kf.pixels[k], features.features[c].pixel);
-                ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt()
-            })
-            .collect();
-        let mid = parallax.len() / 2;
-        let median_parallax = *parallax.select_nth_unstable_by(mid, f32::total_cmp).1 as f64;
+        let tracked_fraction = inliers as f64 / reference.landmarks.max(1) as f64;
+        let median_parallax = if parallax.is_empty() {
+            0.0
+        } else {
+            let mid = parallax.len() / 2;
+            *parallax.select_nth_unstable_by(mid, f32::total_cmp).1 as f64
+        };
         let need_keyframe = tracked_fraction < self.config.keyframe_min_tracked_fraction
             || refined.pose.translation.vector.norm() > self.config.keyframe_max_distance_m
             || refined.pose.rotation.angle().to_degrees() > self.config.keyframe_max_rotation_deg
             || median_parallax > self.config.keyframe_max_parallax_px;
 
-        let from = kf.id;
         let mut result = FrameResult {
             frame,
             state: TrackState::Tracking,
@@ -497,23 +713,42 @@ impl StereoVo {
             link: None,
             inliers,
         };
+        let mut next_reference = reference;
+        let mut pose = pose;
         if need_keyframe {
-            if let Some((active, keyframe)) = self.make_keyframe(frame, stamp_ns, pose, features) {
+            if let Some((new_reference, keyframe, adjusted)) =
+                self.make_keyframe(frame, stamp_ns, pose, (left, right), true)?
+            {
+                // The adjusted window's edge when it has one, else the frame's own
+                // refinement against the reference keyframe.
+                let (relative, information) = adjusted
+                    .and_then(|e| self.adjusted_information(&e).map(|i| (e.relative, i)))
+                    .unwrap_or((refined.pose, refined.information));
                 result.edge = Some(OdometryEdge {
-                    from,
+                    from: reference.id,
                     to: keyframe.id,
-                    relative: refined.pose,
-                    information: refined.information,
+                    relative,
+                    information,
                 });
+                pose = keyframe.pose;
+                result.pose = Some(pose);
                 result.keyframe = Some(keyframe);
-                self.track.as_mut().expect("tracking").keyframe = active;
+                next_reference = new_reference;
             }
         }
-        let track = self.track.as_mut().expect("tracking");
-        track.pose = pose;
-        track.stamp_ns = stamp_ns;
-        track.velocity = velocity;
-        result
+        let step = track.pose.inverse() * pose;
+        let velocity = if dt > 0.0 {
+            step.log() / dt
+        } else {
+            track.velocity
+        };
+        self.track = Some(Track {
+            reference: next_reference,
+            pose,
+            stamp_ns,
+            velocity,
+        });
+        Ok(result)
     }
 }
 
@@ -547,189 +782,4 @@ fn keyframe_features(
             }
         })
         .collect()
-}
-
-/// Hamming distance of two 256-bit descriptors.
-pub fn hamming(a: &[u8; 32], b: &[u8; 32]) -> u32 {
-    let mut d = 0;
-    for k in 0..4 {
-        let x = u64::from_le_bytes(a[8 * k..8 * k + 8].try_into().expect("8 bytes"));
-        let y = u64::from_le_bytes(b[8 * k..8 * k + 8].try_into().expect("8 bytes"));
-        d += (x ^ y).count_ones();
-    }
-    d
-}
-
-/// Matches keyframe points to current features near where the prior pose `prior` (current
-/// camera in the keyframe frame) projects them: best Hamming distance within `radius` px,
-/// below `max_hamming`, clearly better than the second best, one-to-one.
-fn match_projected(
-    kf: &ActiveKeyframe,
-    prior: &SE3,
-    features: &FrameFeatures,
-    calib: &StereoCalibration,
-    config: &VoConfig,
-    radius: f64,
-) -> Vec<(usize, usize)> {
-    let cell = radius.max(8.0);
-    let (mut umax, mut vmax) = (0.0f32, 0.0f32);
-    for f in &features.features {
-        umax = umax.max(f.pixel[0]);
-        vmax = vmax.max(f.pixel[1]);
-    }
-    let cols = (umax as f64 / cell) as usize + 1;
-    let rows = (vmax as f64 / cell) as usize + 1;
-    let mut grid: Vec<Vec<u32>> = vec![Vec::new(); cols * rows];
-    for (i, f) in features.features.iter().enumerate() {
-        let (cx, cy) = (
-            (f.pixel[0] as f64 / cell) as usize,
-            (f.pixel[1] as f64 / cell) as usize,
-        );
-        grid[cy * cols + cx].push(i as u32);
-    }
-    let inv = prior.inverse();
-    // owner[c] = (distance, keyframe index) of the best claim on current feature c.
-    let mut owner: Vec<Option<(u32, usize)>> = vec![None; features.features.len()];
-    let r2 = (radius * radius) as f32;
-    for (k, p) in kf.points.iter().enumerate() {
-        let q = inv * nalgebra::Point3::from(*p);
-        if q.z < 0.1 {
-            continue;
-        }
-        let u = calib.fx * q.x / q.z + calib.cx;
-        let v = calib.fy * q.y / q.z + calib.cy;
-        if !(u > -radius && v > -radius && u < umax as f64 + radius && v < vmax as f64 + radius) {
-            continue;
-        }
-        let (c0, c1) = (
-            ((u - radius).max(0.0) / cell) as usize,
-            (((u + radius).max(0.0) / cell) as usize).min(cols - 1),
-        );
-        let (r0, r1) = (
-            ((v - radius).max(0.0) / cell) as usize,
-            (((v + radius).max(0.0) / cell) as usize).min(rows - 1),
-        );
-        let (mut best, mut second, mut best_i) = (u32::MAX, u32::MAX, usize::MAX);
-        for gy in r0..=r1 {
-            for gx in c0..=c1 {
-                for &i in &grid[gy * cols + gx] {
-                    let f = &features.features[i as usize];
-                    let (du, dv) = (f.pixel[0] - u as f32, f.pixel[1] - v as f32);
-                    if du * du + dv * dv > r2 {
-                        continue;
-                    }
-                    let d = hamming(&kf.descriptors[k], &f.descriptor);
-                    if d < best {
-                        second = best;
-                        best = d;
-                        best_i = i as usize;
-                    } else if d < second {
-                        second = d;
-                    }
-                }
-            }
-        }
-        if best > config.max_hamming
-            || (second != u32::MAX && best as f64 > config.match_ratio * second as f64)
-        {
-            continue;
-        }
-        match owner[best_i] {
-            Some((d, _)) if d <= best => {}
-            _ => owner[best_i] = Some((best, k)),
-        }
-    }
-    owner
-        .iter()
-        .enumerate()
-        .filter_map(|(c, o)| o.map(|(_, k)| (k, c)))
-        .collect()
-}
-
-/// solvePnPRansac of keyframe points against current pixels: the current camera's pose in
-/// the keyframe frame and the indices (into `pairs`) of its inliers.
-fn pnp_ransac(
-    kf: &ActiveKeyframe,
-    pairs: &[(usize, usize)],
-    features: &FrameFeatures,
-    calib: &StereoCalibration,
-    config: &VoConfig,
-) -> Result<Option<(SE3, Vec<usize>)>, FrontendError> {
-    let points: Vec<Vector3<f64>> = pairs.iter().map(|&(k, _)| kf.points[k]).collect();
-    let pixels: Vec<[f32; 2]> = pairs
-        .iter()
-        .map(|&(_, c)| features.features[c].pixel)
-        .collect();
-    pnp_from_points(
-        &points,
-        &pixels,
-        calib,
-        config.ransac_iterations,
-        config.ransac_threshold_px,
-    )
-}
-
-/// solvePnPRansac of 3-D points (in a reference camera frame) against the pixels where a
-/// second camera sees them: that camera's pose in the reference frame, and the inliers.
-pub(crate) fn pnp_from_points(
-    points: &[Vector3<f64>],
-    pixels: &[[f32; 2]],
-    calib: &StereoCalibration,
-    iterations: i32,
-    threshold_px: f64,
-) -> Result<Option<(SE3, Vec<usize>)>, FrontendError> {
-    let object: Vector<Point3f> = points
-        .iter()
-        .map(|p| Point3f::new(p.x as f32, p.y as f32, p.z as f32))
-        .collect();
-    let image: Vector<Point2f> = pixels.iter().map(|p| Point2f::new(p[0], p[1])).collect();
-    let k = Mat::from_slice_2d(&[
-        [calib.fx, 0.0, calib.cx],
-        [0.0, calib.fy, calib.cy],
-        [0.0, 0.0, 1.0],
-    ])
-    .map_err(cv("camera matrix"))?;
-    let mut rvec = Mat::default();
-    let mut tvec = Mat::default();
-    let mut inliers = Vector::<i32>::new();
-    let ok = opencv::calib3d::solve_pnp_ransac(
-        &object,
-        &image,
-        &k,
-        &opencv::core::no_array(),
-        &mut rvec,
-        &mut tvec,
-        false,
-        iterations,
-        threshold_px as f32,
-        0.999,
-        &mut inliers,
-        opencv::calib3d::SOLVEPNP_AP3P,
-    )
-    .map_err(cv("solvePnPRansac"))?;
-    if !ok || rvec.total() != 3 || tvec.total() != 3 {
-        return Ok(None);
-    }
-    let r = Vector3::new(
-        *rvec.at::<f64>(0).map_err(cv("rvec"))?,
-        *rvec.at::<f64>(1).map_err(cv("rvec"))?,
-        *rvec.at::<f64>(2).map_err(cv("rvec"))?,
-    );
-    let t = Vector3::new(
-        *tvec.at::<f64>(0).map_err(cv("tvec"))?,
-        *tvec.at::<f64>(1).map_err(cv("tvec"))?,
-        *tvec.at::<f64>(2).map_err(cv("tvec"))?,
-    );
-    if !(r.iter().chain(t.iter()).all(|x| x.is_finite())) {
-        return Ok(None);
-    }
-    // OpenCV's (rvec, tvec) maps keyframe points into the camera: X_ck.
-    let camera_from_keyframe =
-        Isometry3::from_parts(Translation3::from(t), SO3::exp(&r).quaternion());
-    let inliers = inliers
-        .iter()
-        .filter_map(|i| usize::try_from(i).ok())
-        .filter(|&i| i < points.len())
-        .collect();
-    Ok(Some((camera_from_keyframe.inverse(), inliers)))
 }

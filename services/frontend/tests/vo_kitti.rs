@@ -46,8 +46,9 @@ fn kitti_06_clip_end_point_drift_is_bounded() {
         .unwrap();
     }
     // The information of the edges against KITTI's ground truth: consistent (NEES of 6
-    // dof: mean 6, median 5.3) within a factor of ~2; without the shared-error terms of
-    // VoConfig (rig calibration, ground-truth noise) it was 632 (median 150).
+    // dof: mean 6, median 5.3) within a factor of ~3 (measured: mean 4.96, median 2.08 over
+    // 16 edges); without the shared-error terms of VoConfig (rig calibration, ground-truth
+    // noise) the window adjustment's own information gives a mean of 1753 (median 231).
     let index: Vec<usize> = dataset.frames.iter().map(|f| f.index).collect();
     let nees: Vec<f64> = edge_nees(
         &report.keyframes,
@@ -65,7 +66,7 @@ fn kitti_06_clip_end_point_drift_is_bounded() {
         nees.len()
     );
     assert!(
-        (2.0..12.0).contains(&median) && mean < 30.0,
+        (0.7..12.0).contains(&median) && (2.0..15.0).contains(&mean),
         "NEES mean {mean}, median {median}"
     );
     let features = &report.keyframes[0].features;

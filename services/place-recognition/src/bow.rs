@@ -8,8 +8,6 @@
 
 use std::path::Path;
 
-use doorslam_frontend::opencv::core::Mat;
-use doorslam_frontend::opencv::prelude::*;
 use rayon::prelude::*;
 
 use crate::image::GrayImage;
@@ -263,29 +261,25 @@ pub fn orb_descriptors(
     img: &GrayImage,
     max_features: i32,
 ) -> Result<Vec<Orb>, PlaceRecognitionError> {
-    let orb = |e: String| PlaceRecognitionError::Orb(e);
-    let mat = Mat::new_rows_cols_with_data(img.height as i32, img.width as i32, &img.pixels)
-        .map_err(|e| orb(e.to_string()))?;
-    // An owned Mat (one 360 kB copy, small next to ORB's 12 ms) for detect_orb's &Mat.
-    let mat = mat.try_clone().map_err(|e| orb(e.to_string()))?;
-    let features =
-        doorslam_frontend::detect_orb(&mat, max_features).map_err(|e| orb(e.to_string()))?;
+    let orb = |e: doorslam_vision::VisionError| PlaceRecognitionError::Orb(e.to_string());
+    let gray = doorslam_vision::Gray::new(img.width, img.height, &img.pixels).map_err(orb)?;
+    let features = doorslam_vision::detect_orb_gray(&gray, max_features).map_err(orb)?;
     Ok(features.descriptors)
 }
 
 /// The ORB descriptors a front-end keyframe carries for this stereo pair: its detector's
 /// features (GFTT + upright ORB by default) that found a stereo match, as in
-/// `doorslam_frontend::StereoVo`'s keyframes.
+/// `doorslam_frontend::StereoVo`'s keyframes (the extractor of `doorslam_vision`).
 pub fn keyframe_descriptors(
-    extractor: &mut doorslam_frontend::stereo::Extractor,
+    extractor: &mut doorslam_vision::Extractor,
     left: &GrayImage,
     right: &GrayImage,
 ) -> Result<Vec<Orb>, PlaceRecognitionError> {
-    fn orb(e: doorslam_frontend::FrontendError) -> PlaceRecognitionError {
+    fn orb(e: doorslam_vision::VisionError) -> PlaceRecognitionError {
         PlaceRecognitionError::Orb(e.to_string())
     }
-    fn gray(img: &GrayImage) -> Result<doorslam_frontend::Gray<'_>, PlaceRecognitionError> {
-        doorslam_frontend::Gray::new(img.width, img.height, &img.pixels).map_err(orb)
+    fn gray(img: &GrayImage) -> Result<doorslam_vision::Gray<'_>, PlaceRecognitionError> {
+        doorslam_vision::Gray::new(img.width, img.height, &img.pixels).map_err(orb)
     }
     let (l, r) = (gray(left)?, gray(right)?);
     let features = extractor.extract(&l, &r).map_err(orb)?;

@@ -31,7 +31,7 @@ pub use config::{Calibration, CalibrationSource, FrontendSection};
 pub use files::{Files, Status};
 pub use state::{Counters, FrontendState, Refusal, Restart, Resume, Snapshot, Step};
 
-use crate::features::FrontendError;
+use crate::error::FrontendError;
 use crate::keyframe::{Keyframe, OdometryEdge};
 use crate::run::thread_cpu_s;
 

@@ -12,11 +12,11 @@ use doorslam_ipc::FrameHeader;
 
 use super::config::Calibration;
 use crate::config::VoConfig;
-use crate::features::FrontendError;
+use crate::error::FrontendError;
 use crate::keyframe::{Keyframe, OdometryEdge};
 use crate::run::{quantile, thread_cpu_s};
-use crate::stereo::Gray;
 use crate::vo::{LostReason, StereoVo, TrackState, VoStats};
+use doorslam_vision::Gray;
 
 /// Timing statistics cover this many of the latest frames.
 pub const TIMING_WINDOW: usize = 1000;
@@ -232,14 +232,7 @@ impl FrontendState {
 
     /// The odometry's counters over this process (all instances).
     pub fn vo_stats(&self) -> VoStats {
-        let (a, b) = (self.retired, self.vo.stats());
-        VoStats {
-            frames: a.frames + b.frames,
-            keyframes: a.keyframes + b.keyframes,
-            lost: a.lost + b.lost,
-            lost_frames: a.lost_frames + b.lost_frames,
-            segments: a.segments + b.segments,
-        }
+        self.retired + self.vo.stats()
     }
 
     /// Records the CPU time (ms) of a whole loop iteration that processed a frame.
@@ -313,8 +306,8 @@ impl FrontendState {
 
         let (w, h) = (header.width as usize, header.height as usize);
         // Sizes were checked against the calibration above, so these cannot fail.
-        let left = Gray::new(w, h, left).map_err(|source| self.failed(seq, source))?;
-        let right = Gray::new(w, h, right).map_err(|source| self.failed(seq, source))?;
+        let left = Gray::new(w, h, left).map_err(|source| self.failed(seq, source.into()))?;
+        let right = Gray::new(w, h, right).map_err(|source| self.failed(seq, source.into()))?;
         let (t0, c0) = (Instant::now(), thread_cpu_s());
         let result = self
             .vo
@@ -428,13 +421,7 @@ impl FrontendState {
     fn restart_odometry(&mut self) -> Result<(), FrontendError> {
         let vo = StereoVo::new(self.calibration.stereo, self.vo_config.clone())?;
         let old = std::mem::replace(&mut self.vo, vo).stats();
-        self.retired = VoStats {
-            frames: self.retired.frames + old.frames,
-            keyframes: self.retired.keyframes + old.keyframes,
-            lost: self.retired.lost + old.lost,
-            lost_frames: self.retired.lost_frames + old.lost_frames,
-            segments: self.retired.segments + old.segments,
-        };
+        self.retired = self.retired + old;
         self.counters.camera_restarts += 1;
         self.id_base = self.last_keyframe.map_or(self.id_base, |r| r.keyframe + 1);
         self.world_from_vo = self.last_keyframe.map_or(self.world_from_vo, |r| r.pose);

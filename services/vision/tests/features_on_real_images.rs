@@ -4,7 +4,7 @@
 // compile-time CARGO_MANIFEST_DIR goes stale when one target dir serves several clones).
 use std::path::PathBuf;
 
-use doorslam_frontend::{detect_gftt, detect_orb, load_gray};
+use doorslam_vision::{detect_gftt, detect_orb, load_gray};
 use opencv::prelude::*;
 
 fn data(rel: &str) -> PathBuf {

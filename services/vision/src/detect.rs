@@ -1,0 +1,432 @@
+//! Keypoints and 32-byte ORB descriptors: GFTT / FAST / ORB detection, descriptors of
+//! given pixels, and whole stereo frames' features.
+
+use opencv::core::{no_array, KeyPoint, Mat, Point2f, Ptr, Size, TermCriteria, Vector};
+use opencv::features2d::{
+    FastFeatureDetector, FastFeatureDetector_DetectorType, ORB_ScoreType, ORB,
+};
+use opencv::prelude::*;
+
+use crate::config::{Detector, FeatureConfig};
+use crate::error::{cv, VisionError};
+use crate::image::Gray;
+use crate::stereo::match_along_row;
+
+/// One left-image feature of a frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameFeature {
+    /// Sub-pixel position (u, v) in the left image.
+    pub pixel: [f32; 2],
+    pub descriptor: [u8; 32],
+    /// Sub-pixel disparity (px) when the right image matched along the row.
+    pub disparity: Option<f32>,
+    /// Detector response (higher is stronger): keyframes keep their features in this
+    /// order, so a packet's first N are its best.
+    pub response: f32,
+}
+
+/// A stereo frame's features.
+#[derive(Debug, Clone, Default)]
+pub struct FrameFeatures {
+    pub features: Vec<FrameFeature>,
+}
+
+/// A detected corner: sub-pixel position and detector response.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Corner {
+    pub pixel: [f32; 2],
+    pub response: f32,
+}
+
+/// Detector and descriptor objects, created once (OpenCV allocates on creation).
+pub struct Extractor {
+    config: FeatureConfig,
+    /// Describes given keypoints on one pyramid level (GFTT / FAST), or detects and
+    /// describes on eight (ORB).
+    orb: Ptr<ORB>,
+    fast: Ptr<FastFeatureDetector>,
+    /// Shi-Tomasi score image, reused between frames.
+    score: Mat,
+}
+
+impl std::fmt::Debug for Extractor {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Extractor")
+            .field("detector", &self.config.detector)
+            .finish()
+    }
+}
+
+/// ORB's border (px, OpenCV's default): keypoints closer to the edge get no descriptor, so
+/// the detectors skip that band.
+pub const ORB_EDGE: i32 = 31;
+
+impl Extractor {
+    pub fn new(config: &FeatureConfig) -> Result<Self, VisionError> {
+        let levels = if config.detector == Detector::Orb {
+            8
+        } else {
+            1
+        };
+        let orb = ORB::create(
+            config.max_features as i32,
+            1.2,
+            levels,
+            ORB_EDGE,
+            0,
+            2,
+            ORB_ScoreType::HARRIS_SCORE,
+            31,
+            config.fast_threshold,
+        )
+        .map_err(cv("ORB::create"))?;
+        let fast = FastFeatureDetector::create(
+            config.fast_threshold,
+            true,
+            FastFeatureDetector_DetectorType::TYPE_9_16,
+        )
+        .map_err(cv("FastFeatureDetector::create"))?;
+        Ok(Self {
+            config: config.clone(),
+            orb,
+            fast,
+            score: Mat::default(),
+        })
+    }
+
+    pub fn config(&self) -> &FeatureConfig {
+        &self.config
+    }
+
+    /// Left keypoints with descriptors, then their stereo disparities.
+    pub fn extract(
+        &mut self,
+        left: &Gray<'_>,
+        right: &Gray<'_>,
+    ) -> Result<FrameFeatures, VisionError> {
+        let image = left.mat()?;
+        let mut keypoints = self.detect(&image)?;
+        let mut descriptors = Mat::default();
+        let provided = self.config.detector != Detector::Orb;
+        self.orb
+            .detect_and_compute(
+                &image,
+                &no_array(),
+                &mut keypoints,
+                &mut descriptors,
+                provided,
+            )
+            .map_err(cv("ORB descriptors"))?;
+        if keypoints.is_empty() {
+            return Ok(FrameFeatures::default());
+        }
+        if descriptors.cols() != 32 || descriptors.rows() != keypoints.len() as i32 {
+            return Err(VisionError::DescriptorWidth {
+                cols: descriptors.cols(),
+            });
+        }
+        let mut features = Vec::with_capacity(keypoints.len());
+        for (i, kp) in keypoints.iter().enumerate() {
+            let pixel = [kp.pt().x, kp.pt().y];
+            features.push(FrameFeature {
+                pixel,
+                descriptor: descriptor_row(&descriptors, i)?,
+                disparity: match_along_row(left, right, pixel, &self.config),
+                response: kp.response(),
+            });
+        }
+        Ok(FrameFeatures { features })
+    }
+
+    /// Corners of the configured detector in the left image, strongest first (at most
+    /// `max_features`, none within ORB's border).
+    pub fn corners(&mut self, left: &Gray<'_>) -> Result<Vec<Corner>, VisionError> {
+        let image = left.mat()?;
+        if self.config.detector == Detector::Orb {
+            let mut keypoints = Vector::<KeyPoint>::new();
+            self.orb
+                .detect(&image, &mut keypoints, &no_array())
+                .map_err(cv("ORB detect"))?;
+            let mut out: Vec<Corner> = keypoints
+                .iter()
+                .map(|k| Corner {
+                    pixel: [k.pt().x, k.pt().y],
+                    response: k.response(),
+                })
+                .collect();
+            out.sort_by(|a, b| b.response.total_cmp(&a.response));
+            return Ok(out);
+        }
+        Ok(self
+            .detect(&image)?
+            .iter()
+            .map(|k| Corner {
+                pixel: [k.pt().x, k.pt().y],
+                response: k.response(),
+            })
+            .collect())
+    }
+
+    /// Upright single-level ORB descriptors of the given left-image pixels (`None` for a
+    /// pixel too close to the border to be described).
+    pub fn describe(
+        &mut self,
+        left: &Gray<'_>,
+        pixels: &[[f32; 2]],
+    ) -> Result<Vec<Option<[u8; 32]>>, VisionError> {
+        let image = left.mat()?;
+        let mut keypoints = Vector::<KeyPoint>::with_capacity(pixels.len());
+        for (i, p) in pixels.iter().enumerate() {
+            keypoints.push(
+                KeyPoint::new_coords(p[0], p[1], 31.0, 0.0, 0.0, 0, i as i32)
+                    .map_err(cv("KeyPoint"))?,
+            );
+        }
+        let mut descriptors = Mat::default();
+        self.orb
+            .compute(&image, &mut keypoints, &mut descriptors)
+            .map_err(cv("ORB compute"))?;
+        let mut out = vec![None; pixels.len()];
+        if keypoints.is_empty() {
+            return Ok(out);
+        }
+        if descriptors.cols() != 32 || descriptors.rows() != keypoints.len() as i32 {
+            return Err(VisionError::DescriptorWidth {
+                cols: descriptors.cols(),
+            });
+        }
+        // ORB drops keypoints near the border; the class id says which pixel each row is.
+        for (row, kp) in keypoints.iter().enumerate() {
+            if let Some(slot) = usize::try_from(kp.class_id())
+                .ok()
+                .and_then(|i| out.get_mut(i))
+            {
+                *slot = Some(descriptor_row(&descriptors, row)?);
+            }
+        }
+        Ok(out)
+    }
+
+    fn detect(
+        &mut self,
+        image: &impl opencv::core::ToInputArray,
+    ) -> Result<Vector<KeyPoint>, VisionError> {
+        let mut keypoints = Vector::<KeyPoint>::new();
+        match self.config.detector {
+            Detector::Orb => {}
+            Detector::Gftt => {
+                for c in self.shi_tomasi(image)? {
+                    keypoints.push(
+                        KeyPoint::new_coords(c[0], c[1], 31.0, 0.0, c[2], 0, -1)
+                            .map_err(cv("KeyPoint"))?,
+                    );
+                }
+            }
+            Detector::Fast => {
+                self.fast
+                    .detect(image, &mut keypoints, &no_array())
+                    .map_err(cv("FAST"))?;
+                opencv::features2d::KeyPointsFilter::retain_best(
+                    &mut keypoints,
+                    self.config.max_features as i32,
+                )
+                .map_err(cv("KeyPointsFilter::retainBest"))?;
+                let mut upright = Vector::<KeyPoint>::with_capacity(keypoints.len());
+                for kp in keypoints.iter() {
+                    upright.push(
+                        KeyPoint::new_coords(kp.pt().x, kp.pt().y, 31.0, 0.0, kp.response(), 0, -1)
+                            .map_err(cv("KeyPoint"))?,
+                    );
+                }
+                keypoints = upright;
+            }
+        }
+        Ok(keypoints)
+    }
+
+    /// "Good features to track" (Shi-Tomasi: the smaller eigenvalue of the gradient's
+    /// structure tensor) with OpenCV's score image, but selected on a grid: the strongest
+    /// pixel of each `min_feature_distance_px` cell above `gftt_quality` × the best score,
+    /// strongest first. The same corners as cv::goodFeaturesToTrack's spread-out set at a
+    /// fraction of its cost (it sorts every candidate pixel), and a sub-pixel position from
+    /// cv::cornerSubPix. Returns (u, v, score).
+    fn shi_tomasi(
+        &mut self,
+        image: &impl opencv::core::ToInputArray,
+    ) -> Result<Vec<[f32; 3]>, VisionError> {
+        opencv::imgproc::corner_min_eigen_val(
+            image,
+            &mut self.score,
+            3,
+            3,
+            opencv::core::BORDER_DEFAULT,
+        )
+        .map_err(cv("cornerMinEigenVal"))?;
+        let (w, h) = (self.score.cols() as usize, self.score.rows() as usize);
+        let score = self.score.data_typed::<f32>().map_err(cv("score image"))?;
+        let border = ORB_EDGE as usize + 1;
+        if w <= 2 * border || h <= 2 * border {
+            return Ok(Vec::new());
+        }
+        let cell = (self.config.min_feature_distance_px.round() as usize).max(2);
+        let mut best = 0.0f32;
+        let mut cells: Vec<[f32; 3]> = Vec::new();
+        for cy in (border..h - border).step_by(cell) {
+            for cx in (border..w - border).step_by(cell) {
+                let (mut m, mut mx, mut my) = (0.0f32, 0usize, 0usize);
+                for y in cy..(cy + cell).min(h - border) {
+                    let row = &score[y * w..(y + 1) * w];
+                    for (x, &s) in row
+                        .iter()
+                        .enumerate()
+                        .take((cx + cell).min(w - border))
+                        .skip(cx)
+                    {
+                        if s > m {
+                            (m, mx, my) = (s, x, y);
+                        }
+                    }
+                }
+                // Only a true peak: a cell's maximum on its edge may be the slope of a
+                // stronger corner in the next cell, a poorly localised point.
+                let peak = m > 0.0
+                    && (my - 1..=my + 1).all(|y| {
+                        (mx - 1..=mx + 1).all(|x| (x, y) == (mx, my) || score[y * w + x] < m)
+                    });
+                if peak {
+                    best = best.max(m);
+                    cells.push([mx as f32, my as f32, m]);
+                }
+            }
+        }
+        let threshold = self.config.gftt_quality as f32 * best;
+        cells.retain(|c| c[2] > threshold);
+        cells.sort_by(|a, b| b[2].total_cmp(&a[2]));
+        cells.truncate(self.config.max_features);
+        if cells.is_empty() {
+            return Ok(cells);
+        }
+        // Sub-pixel corners (the gradient-orthogonality iteration of cv::cornerSubPix):
+        // integer positions alone would add up to ±0.5 px to every residual.
+        let mut corners: Vector<Point2f> = cells.iter().map(|c| Point2f::new(c[0], c[1])).collect();
+        opencv::imgproc::corner_sub_pix(
+            image,
+            &mut corners,
+            Size::new(3, 3),
+            Size::new(-1, -1),
+            TermCriteria::new(
+                opencv::core::TermCriteria_COUNT + opencv::core::TermCriteria_EPS,
+                10,
+                0.01,
+            )
+            .map_err(cv("TermCriteria"))?,
+        )
+        .map_err(cv("cornerSubPix"))?;
+        for (c, p) in cells.iter_mut().zip(corners.iter()) {
+            // A corner that wandered more than a pixel was not a corner.
+            if (p.x - c[0]).abs() <= 1.0 && (p.y - c[1]).abs() <= 1.0 {
+                (c[0], c[1]) = (p.x, p.y);
+            }
+        }
+        Ok(cells)
+    }
+}
+
+fn descriptor_row(descriptors: &Mat, row: usize) -> Result<[u8; 32], VisionError> {
+    let bytes = descriptors
+        .at_row::<u8>(row as i32)
+        .map_err(cv("descriptor row"))?;
+    let mut descriptor = [0u8; 32];
+    descriptor.copy_from_slice(bytes);
+    Ok(descriptor)
+}
+
+/// Hamming distance of two 256-bit descriptors.
+pub fn hamming(a: &[u8; 32], b: &[u8; 32]) -> u32 {
+    let mut d = 0;
+    for k in 0..4 {
+        let x = u64::from_le_bytes(a[8 * k..8 * k + 8].try_into().expect("8 bytes"));
+        let y = u64::from_le_bytes(b[8 * k..8 * k + 8].try_into().expect("8 bytes"));
+        d += (x ^ y).count_ones();
+    }
+    d
+}
+
+/// ORB keypoints with their 32-byte binary descriptors, index-aligned.
+#[derive(Debug, Clone, Default)]
+pub struct OrbFeatures {
+    /// Pixel coordinates (x, y) of each keypoint.
+    pub points: Vec<[f32; 2]>,
+    /// Detector response of each keypoint (higher is stronger).
+    pub responses: Vec<f32>,
+    /// One 256-bit descriptor per keypoint.
+    pub descriptors: Vec<[u8; 32]>,
+}
+
+/// Detects up to `max_features` ORB features (FAST corners on an 8-level pyramid, Harris
+/// ranking) and computes their descriptors.
+pub fn detect_orb(image: &Mat, max_features: i32) -> Result<OrbFeatures, VisionError> {
+    let mut orb = ORB::create(
+        max_features,
+        1.2,
+        8,
+        31,
+        0,
+        2,
+        ORB_ScoreType::HARRIS_SCORE,
+        31,
+        20,
+    )
+    .map_err(cv("ORB::create"))?;
+    let mut keypoints = Vector::<KeyPoint>::new();
+    let mut descriptors = Mat::default();
+    orb.detect_and_compute(image, &no_array(), &mut keypoints, &mut descriptors, false)
+        .map_err(cv("ORB::detect_and_compute"))?;
+    let mut out = OrbFeatures::default();
+    if keypoints.is_empty() {
+        return Ok(out);
+    }
+    if descriptors.cols() != 32 {
+        return Err(VisionError::DescriptorWidth {
+            cols: descriptors.cols(),
+        });
+    }
+    for (i, kp) in keypoints.iter().enumerate() {
+        out.points.push([kp.pt().x, kp.pt().y]);
+        out.responses.push(kp.response());
+        out.descriptors.push(descriptor_row(&descriptors, i)?);
+    }
+    Ok(out)
+}
+
+/// [`detect_orb`] on a borrowed image.
+pub fn detect_orb_gray(image: &Gray<'_>, max_features: i32) -> Result<OrbFeatures, VisionError> {
+    let mat = image.mat()?;
+    // An owned Mat (one image copy, small next to ORB's cost) for detect_orb's &Mat.
+    let mat = mat.try_clone().map_err(cv("Mat clone"))?;
+    detect_orb(&mat, max_features)
+}
+
+/// Shi-Tomasi corners ("good features to track"), strongest first, at least
+/// `min_distance` pixels apart.
+pub fn detect_gftt(
+    image: &Mat,
+    max_corners: i32,
+    quality: f64,
+    min_distance: f64,
+) -> Result<Vec<[f32; 2]>, VisionError> {
+    let mut corners = Vector::<Point2f>::new();
+    opencv::imgproc::good_features_to_track(
+        image,
+        &mut corners,
+        max_corners,
+        quality,
+        min_distance,
+        &no_array(),
+        3,
+        false,
+        0.04,
+    )
+    .map_err(cv("goodFeaturesToTrack"))?;
+    Ok(corners.iter().map(|p| [p.x, p.y]).collect())
+}
