@@ -14,11 +14,13 @@
 //! - [`projection`]: PCA to the 128-D wire form (the bag of words' wire form);
 //! - [`service`]: the `place-recognition` service (keyframes in, descriptors out);
 //! - [`eval`]: precision-recall of inter-robot matches against ground truth;
+//!   [`chain_eval`]: the candidate chain and PnP verification offline (`place eval --verify`);
 //! - [`onnx`]: a small writer of ONNX files (tests build models without downloads);
 //!   [`model`]: a `[batch, d] -> [batch, d']` model and the onnxruntime environment.
 
 pub mod bow;
 pub mod candidates;
+pub mod chain_eval;
 pub mod describer;
 pub mod eval;
 pub mod image;
