@@ -497,7 +497,9 @@ fn verify_chain(
     chain.window = a.temporal_window.unwrap_or(chain.window);
     chain.min_support = a.min_support.unwrap_or(chain.min_support);
     chain.max_gap = a.max_gap.unwrap_or(chain.max_gap);
-    chain.validate().map_err(|e| anyhow::anyhow!("--verify: {e}"))?;
+    chain
+        .validate()
+        .map_err(|e| anyhow::anyhow!("--verify: {e}"))?;
     let verify_config: doorslam_frontend::VerifyConfig = match &a.verify_config {
         Some(p) => toml::from_str(
             &std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?,

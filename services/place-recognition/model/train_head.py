@@ -144,9 +144,13 @@ def initial_assignment(X, k, rng, per_image, iters):
     return 2.0 * alpha * c, -alpha * (c ** 2).sum(1), c, alpha
 
 
-def whitening(v, dim, power=1.0):
+def whitening(v, dim, power=1.0, rng=None, max_samples=3000):
     """PCA(-whitening) of row vectors v to `dim`: (mean, projection [D_in, dim]); principal
-    direction i divided by sigma_i^power; eigenvector signs fixed (largest entry positive)."""
+    direction i divided by sigma_i^power; eigenvector signs fixed (largest entry positive).
+    At most `max_samples` rows (a seeded subset) go into the SVD: its cost grows with the
+    square of the rows, and 3,000 of them pin 128 directions of the VLAD space."""
+    if rng is not None and len(v) > max_samples:
+        v = v[np.sort(rng.choice(len(v), max_samples, replace=False))]
     v = v.astype(np.float64)
     mean = v.mean(0)
     _, s, vt = np.linalg.svd(v - mean, full_matrices=False)

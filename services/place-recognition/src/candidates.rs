@@ -65,8 +65,7 @@ impl ChainConfig {
         if self.top_k == 0 || self.top_k > 64 {
             return Err(format!("top_k = {}: from 1 to 64", self.top_k));
         }
-        if !(self.max_distance.is_finite() && self.max_distance > 0.0 && self.max_distance <= 2.0)
-        {
+        if !(self.max_distance.is_finite() && self.max_distance > 0.0 && self.max_distance <= 2.0) {
             return Err(format!(
                 "max_distance = {}: a distance of unit vectors, in (0, 2]",
                 self.max_distance
@@ -375,7 +374,12 @@ mod tests {
             max_gap: 3,
         };
         assert!(ok.validate().is_ok());
-        let e = ChainConfig { top_k: 0, ..ok.clone() }.validate().unwrap_err();
+        let e = ChainConfig {
+            top_k: 0,
+            ..ok.clone()
+        }
+        .validate()
+        .unwrap_err();
         assert!(e.contains("top_k"), "{e}");
         let e = ChainConfig {
             max_distance: f32::NAN,

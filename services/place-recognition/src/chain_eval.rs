@@ -146,7 +146,10 @@ pub fn evaluate_chain(
         }
         for alpha in 0..beta {
             let queries: Vec<usize> = (0..ids.len()).filter(|&i| ids[i].0 == alpha).collect();
-            let received = queries.iter().map(|&i| wire(i)).collect::<Result<Vec<_>, _>>()?;
+            let received = queries
+                .iter()
+                .map(|&i| wire(i))
+                .collect::<Result<Vec<_>, _>>()?;
             for chunk in received.chunks(MAX_DESCRIPTORS) {
                 let range = key::index(chunk[0].key)..key::index(chunk[chunk.len() - 1].key) + 1;
                 report.bytes.descriptors += encoded(
@@ -250,8 +253,10 @@ pub fn evaluate_chain(
         .overlaps
         .iter()
         .filter(|(a, b)| {
-            a.iter()
-                .any(|&q| b.iter().any(|&c| found.contains(&(q, c)) || found.contains(&(c, q))))
+            a.iter().any(|&q| {
+                b.iter()
+                    .any(|&c| found.contains(&(q, c)) || found.contains(&(c, q)))
+            })
         })
         .count() as u64;
     report.verified_recall =
@@ -325,7 +330,10 @@ pub fn keyframe_features(
         let (w, h, left_px) = doorslam_dataset::read_gray_png(&k.image)?;
         let (wr, hr, right_px) = doorslam_dataset::read_gray_png(right)?;
         if (w, h) != (wr, hr) {
-            return Err(input(right, format!("{wr}x{hr}, the left image is {w}x{h}")));
+            return Err(input(
+                right,
+                format!("{wr}x{hr}, the left image is {w}x{h}"),
+            ));
         }
         let start = std::time::Instant::now();
         let bad = |e: doorslam_frontend::FrontendError| input(&k.image, e.to_string());

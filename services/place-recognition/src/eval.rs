@@ -154,8 +154,7 @@ impl EvalSet {
         for r in &robots {
             let data = Dataset::open(&dir.join(r))?;
             all_poses.push(data.truth.unwrap_or_default());
-            self.robot_dirs
-                .insert(format!("{index}/{r}"), dir.join(r));
+            self.robot_dirs.insert(format!("{index}/{r}"), dir.join(r));
             self.keyframes.extend(robot_keyframes(
                 &dir.join(r),
                 &format!("{index}/{r}"),

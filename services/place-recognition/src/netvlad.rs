@@ -140,7 +140,11 @@ impl NetVlad {
                 .filter(|s| !s.trim().is_empty())
                 .map(|s| s.trim().parse::<u64>())
                 .collect::<Result<_, _>>()
-                .map_err(|_| bad(format!("metadata {TRAINING_TOWNS_KEY} = {v:?} is not a list of seeds")))?,
+                .map_err(|_| {
+                    bad(format!(
+                        "metadata {TRAINING_TOWNS_KEY} = {v:?} is not a list of seeds"
+                    ))
+                })?,
         };
         Ok(Self {
             session,
