@@ -47,31 +47,46 @@ def l2(x, axis):
 
 
 class Head:
-    """The head's parameters (float32): W [K, C], b [K], c [K, C], mu [KC], P [KC, D]."""
+    """The head's parameters (float32): W [K, C], b [K], c [K, C], mu [R KC], P [R KC, D],
+    and its pooling regions [R, N] (0/1 weights over the N feature-map locations; one
+    region of ones: plain NetVLAD). With several regions (the whole view and its left and
+    right halves, say) each region's VLAD is normalized on its own and the R vectors are
+    concatenated (divided by sqrt(R): unit norm again) before the projection, so the
+    descriptor keeps which side of the street looks like what."""
 
     NAMES = ("W", "b", "c", "mu", "P")
 
-    def __init__(self, W, b, c, mu, P):
+    def __init__(self, W, b, c, mu, P, regions=None):
         self.W, self.b, self.c, self.mu, self.P = (
             None if a is None else np.asarray(a, np.float32) for a in (W, b, c, mu, P))
+        self.regions = None if regions is None else np.asarray(regions, np.float32)
 
     def params(self):
         return {n: getattr(self, n) for n in self.NAMES}
 
+    def region_weights(self, n):
+        return np.ones((1, n), np.float32) if self.regions is None else self.regions
+
     def vlad(self, X, mask=None):
-        """Forward to the normalized VLAD vector; returns (v, cache for backward). `mask`
-        [B, N] (0/1) drops locations (augmentation: a crop of the feature map)."""
+        """Forward to the normalized (region-)VLAD vector; returns (v, cache for backward).
+        `mask` [B, N] (0/1) drops locations (augmentation: a crop of the feature map)."""
         s = X @ self.W.T + self.b  # [B, N, K]
         s -= s.max(-1, keepdims=True)
         e = np.exp(s)
         a = e / e.sum(-1, keepdims=True)
         am = a if mask is None else a * mask[:, :, None]
-        m = am.sum(1)  # [B, K]
-        V = np.matmul(am.transpose(0, 2, 1), X) - m[:, :, None] * self.c[None]  # [B, K, C]
-        Vn, r = l2(V, 2)
-        u = Vn.reshape(len(X), -1)
-        v, q = l2(u, 1)
-        return v, (X, a, mask, m, Vn, r, v, q)
+        regions = self.region_weights(X.shape[1])
+        parts, per_region = [], []
+        for w in regions:
+            ar = am * w[None, :, None]
+            m = ar.sum(1)  # [B, K]
+            V = np.matmul(ar.transpose(0, 2, 1), X) - m[:, :, None] * self.c[None]  # [B, K, C]
+            Vn, r = l2(V, 2)
+            v, q = l2(Vn.reshape(len(X), -1), 1)
+            parts.append(v)
+            per_region.append((m, Vn, r, v, q))
+        v = np.concatenate(parts, 1) / np.float32(np.sqrt(len(regions)))
+        return v, (X, a, mask, per_region, v)
 
     def forward(self, X, mask=None):
         v, cache = self.vlad(X, mask)
@@ -83,7 +98,7 @@ class Head:
 
     def backward(self, dz, cache, train_projection=True):
         """Gradients of the parameters from dL/dz (the chain rule through `forward`)."""
-        X, a, mask, m, Vn, r, v, q, z, t = cache
+        X, a, mask, per_region, v, z, t = cache
         B, _, C = X.shape
         K = self.W.shape[0]
         grads = {}
@@ -94,11 +109,19 @@ class Head:
             if train_projection:
                 grads["P"] = (v - self.mu).T @ dy
             dv = dy @ self.P.T
-        du = (dv - v * (v * dv).sum(1, keepdims=True)) / q
-        dVn = du.reshape(B, K, C)
-        dV = (dVn - Vn * (Vn * dVn).sum(2, keepdims=True)) / r
-        grads["c"] = -(m[:, :, None] * dV).sum(0)
-        da = np.matmul(X, dV.transpose(0, 2, 1)) - (dV * self.c[None]).sum(2)[:, None, :]
+        regions = self.region_weights(X.shape[1])
+        dv = dv / np.float32(np.sqrt(len(regions)))
+        dc = np.zeros_like(self.c)
+        da = np.zeros_like(a)
+        for i, (w, (m, Vn, r, vr, q)) in enumerate(zip(regions, per_region)):
+            dvr = dv[:, i * K * C:(i + 1) * K * C]
+            du = (dvr - vr * (vr * dvr).sum(1, keepdims=True)) / q
+            dVn = du.reshape(B, K, C)
+            dV = (dVn - Vn * (Vn * dVn).sum(2, keepdims=True)) / r
+            dc -= (m[:, :, None] * dV).sum(0)
+            dar = np.matmul(X, dV.transpose(0, 2, 1)) - (dV * self.c[None]).sum(2)[:, None, :]
+            da += dar * w[None, :, None]
+        grads["c"] = dc
         if mask is not None:
             da = da * mask[:, :, None]
         ds = a * (da - (a * da).sum(-1, keepdims=True))
@@ -111,6 +134,21 @@ class Head:
 
     def vlads(self, X, batch=256):
         return np.concatenate([self.vlad(X[i:i + batch])[0] for i in range(0, len(X), batch)])
+
+
+def split_regions(grid, kind):
+    """Pooling regions over an h x w feature map: `whole`, or `halves` (the whole view, its
+    left half and its right half), or `thirds` (whole, left, middle, right)."""
+    h, w = grid
+    cols = np.tile(np.arange(w), h)
+    if kind == "whole":
+        return np.ones((1, h * w), np.float32)
+    if kind == "halves":
+        return np.stack([np.ones(h * w), cols < w / 2, cols >= w / 2]).astype(np.float32)
+    if kind == "thirds":
+        return np.stack([np.ones(h * w), cols < w / 3, (cols >= w / 3) & (cols < 2 * w / 3),
+                         cols >= 2 * w / 3]).astype(np.float32)
+    raise ValueError(kind)
 
 
 def kmeans(x, k, rng, iters):
