@@ -11,6 +11,7 @@ use doorslam_place_recognition::bow::{
     default_vocabulary_path, keyframe_descriptors, orb_descriptors, Vocabulary, WIRE_DIM,
     WIRE_WHITENING,
 };
+use doorslam_place_recognition::chain_eval::{evaluate_chain, keyframe_features, ChainInput};
 use doorslam_place_recognition::describer::BOW_FEATURES;
 use doorslam_place_recognition::eval::{
     at_threshold, pr_curve, svg, threshold_at_precision, EvalSet, Keyframe,
@@ -110,6 +111,30 @@ pub struct EvalArgs {
     /// Where to write the precision-recall curve [default: pr_<method>[_int8].svg].
     #[arg(long)]
     pub svg: Option<PathBuf>,
+    /// Also run the whole candidate chain on the wire form (implies --int8): top-k below
+    /// the distance bound (--threshold, default the method's), temporal confirmation, PnP
+    /// verification on the front-end's keyframe features; adds `verified_recall`,
+    /// `verified_false`, `verified_aliased`, `verification_requests`,
+    /// `bytes_per_true_closure` and the counts of every stage (`chain`).
+    #[arg(long, conflicts_with = "projected")]
+    pub verify: bool,
+    /// Candidates per query [default: the method's chain, `Method::default_chain`].
+    #[arg(long, requires = "verify")]
+    pub top_k: Option<usize>,
+    /// Temporal neighbours looked at, in keyframes on each side.
+    #[arg(long, requires = "verify")]
+    pub temporal_window: Option<u64>,
+    /// Neighbours that must agree (0: no temporal check).
+    #[arg(long, requires = "verify")]
+    pub min_support: Option<usize>,
+    /// A neighbour agrees when one of its candidates is within this many keyframes of the
+    /// pair's candidate.
+    #[arg(long, requires = "verify")]
+    pub max_gap: Option<u64>,
+    /// Verification settings (TOML with any fields of the front-end's VerifyConfig, as
+    /// `[rendezvous.verify]` of robot.toml).
+    #[arg(long, requires = "verify")]
+    pub verify_config: Option<PathBuf>,
     #[arg(long)]
     pub json: bool,
 }
@@ -319,13 +344,25 @@ fn keyframes_without_truth(dir: &Path, stride: usize) -> Result<EvalSet> {
         .collect();
     Ok(EvalSet {
         keyframes,
-        positives: Default::default(),
+        ..Default::default()
     })
 }
 
-fn eval(a: EvalArgs) -> Result<()> {
+fn eval(mut a: EvalArgs) -> Result<()> {
+    a.int8 |= a.verify;
     let set = EvalSet::load(&a.dirs, a.describer.stride)?;
     let mut describer = open_describer(&a.describer)?;
+    if let Describer::NetVlad(m) = &describer {
+        let trained = set.training_towns(m.training_towns());
+        if let Some((dir, seed)) = trained.first() {
+            bail!(
+                "{}: town seed {seed} is one the model was trained on (its metadata lists {:?}); \
+                 evaluate on towns it never saw",
+                dir.display(),
+                m.training_towns()
+            );
+        }
+    }
     let method = describer.method().name();
     let wire = a.int8 || a.projected;
     eprintln!(
@@ -406,7 +443,7 @@ fn eval(a: EvalArgs) -> Result<()> {
             None => eprintln!("place eval: threshold {t:.4} accepts no match"),
         }
     }
-    let json = serde_json::json!({
+    let mut json = serde_json::json!({
         "method": method,
         "queries": curve.queries,
         "recall_at_1": curve.recall_at_1,
@@ -415,6 +452,12 @@ fn eval(a: EvalArgs) -> Result<()> {
         "bytes_per_descriptor": bytes,
         "ms_per_descriptor": ms,
     });
+    if a.verify {
+        let chain = verify_chain(&a, &set, &descriptors, describer.method(), threshold)?;
+        if let serde_json::Value::Object(o) = &mut json {
+            o.extend(chain.as_object().cloned().unwrap_or_default());
+        }
+    }
     if a.json {
         println!("{json}");
     } else {
@@ -422,9 +465,91 @@ fn eval(a: EvalArgs) -> Result<()> {
             "{label}: {} queries, recall@1 {:.3}, precision at recall 0.5 {:.3}, AUC {:.3}, {bytes:.0} B/descriptor, {ms:.1} ms/descriptor",
             curve.queries, curve.recall_at_1, curve.precision_at_recall_0_5, curve.auc
         );
+        if a.verify {
+            println!(
+                "chain: {} verification requests, verified recall {:.3}, {} false ({} aliased), {} B per true closure",
+                json["verification_requests"],
+                json["verified_recall"].as_f64().unwrap_or(0.0),
+                json["verified_false"],
+                json["verified_aliased"],
+                json["bytes_per_true_closure"]
+            );
+        }
     }
     std::io::stdout().flush()?;
     Ok(())
+}
+
+/// `--verify`: the candidate chain and PnP verification over the set (library:
+/// `chain_eval`), as the JSON fields it adds.
+fn verify_chain(
+    a: &EvalArgs,
+    set: &EvalSet,
+    descriptors: &[Vec<f32>],
+    method: doorslam_place_recognition::Method,
+    threshold: Option<f64>,
+) -> Result<serde_json::Value> {
+    let mut chain = method.default_chain();
+    if let Some(t) = threshold {
+        chain.max_distance = t as f32;
+    }
+    chain.top_k = a.top_k.unwrap_or(chain.top_k);
+    chain.window = a.temporal_window.unwrap_or(chain.window);
+    chain.min_support = a.min_support.unwrap_or(chain.min_support);
+    chain.max_gap = a.max_gap.unwrap_or(chain.max_gap);
+    chain
+        .validate()
+        .map_err(|e| anyhow::anyhow!("--verify: {e}"))?;
+    let verify_config: doorslam_frontend::VerifyConfig = match &a.verify_config {
+        Some(p) => toml::from_str(
+            &std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?,
+        )
+        .with_context(|| format!("{}: not a verification config", p.display()))?,
+        None => Default::default(),
+    };
+    eprintln!("place eval --verify: the front-end's features of every keyframe");
+    let progress = |done: usize, total: usize| {
+        if done % 250 == 0 || done == total {
+            eprintln!("place eval --verify: {done}/{total} keyframes");
+        }
+    };
+    let (features, calibration, features_ms) =
+        keyframe_features(set, &doorslam_frontend::VoConfig::default(), &progress)?;
+    let input = ChainInput {
+        set,
+        descriptors,
+        features: &features,
+        calibration: &calibration,
+    };
+    let report = evaluate_chain(
+        &input,
+        &chain,
+        &verify_config,
+        doorslam_frontend::MAX_PACKET_FEATURES,
+    )
+    .map_err(|e| anyhow::anyhow!("--verify: {e}"))?;
+    Ok(serde_json::json!({
+        "verified_recall": report.verified_recall,
+        "verified_false": report.verified_false,
+        "verified_aliased": report.verified_aliased,
+        "verification_requests": report.verification_requests,
+        "bytes_per_true_closure": report.bytes_per_true_closure,
+        "chain": {
+            "config": chain,
+            "stages": report.chain,
+            "packets": report.packets,
+            "verified": report.verified,
+            "verified_true": report.verified_true,
+            "rejected": report.rejected,
+            "true_overlaps": report.true_overlaps,
+            "true_overlaps_found": report.true_overlaps_found,
+            "bytes": report.bytes,
+            "worst_true_error_m": report.worst_true_error_m,
+            "worst_true_error_deg": report.worst_true_error_deg,
+            "ms_per_verification": report.ms_per_verification,
+            "ms_per_keyframe_features": features_ms,
+        },
+    }))
 }
 
 fn vocabulary(a: VocabularyArgs) -> Result<()> {
@@ -493,7 +618,7 @@ fn single_image(path: &Path) -> EvalSet {
             right: None,
             pose: nalgebra::Isometry3::identity(),
         }],
-        positives: Default::default(),
+        ..Default::default()
     }
 }
 
@@ -527,6 +652,6 @@ fn keyframes_of_any(dir: &Path, stride: usize) -> Result<EvalSet> {
                 pose: nalgebra::Isometry3::identity(),
             })
             .collect(),
-        positives: Default::default(),
+        ..Default::default()
     })
 }

@@ -91,10 +91,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                     let pieces = doorslam_rendezvous::RobotPieces {
                         calibration: config.calibration()?,
                         matching: config.rendezvous.matching(
-                            config
-                                .place
-                                .match_threshold
-                                .unwrap_or_else(|| config.place.method.default_threshold()),
+                            config.place.chain(),
+                            config.place.own_loops,
+                            config.place.temporal_exclusion,
                         ),
                     };
                     doorslam_rendezvous::run(&config.team, &config.robot.id, index, &pieces, &stop)?

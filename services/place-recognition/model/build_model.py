@@ -22,6 +22,7 @@ are held out for the benchmark). Every random choice is seeded: two runs write t
 
 import argparse
 import collections
+import functools
 import hashlib
 import io
 import os
@@ -32,7 +33,12 @@ import time
 import zipfile
 from pathlib import Path
 
-import numpy as np
+# One BLAS thread: the same sums in the same order on every machine (the recorded hash),
+# and no spinning threads on shared cores.
+os.environ["OPENBLAS_NUM_THREADS"] = "1"
+os.environ["OMP_NUM_THREADS"] = "1"
+
+import numpy as np  # noqa: E402
 import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper, numpy_helper
@@ -301,6 +307,7 @@ def run_batched(sess, images, batch=16):
 
 # ---------------------------------------------------------------- preprocessing (as in Rust)
 
+@functools.lru_cache(maxsize=None)
 def area_weights(n_in, n_out):
     """Rows: output pixel j averages input interval [j s, (j+1) s), s = n_in / n_out."""
     s = n_in / n_out

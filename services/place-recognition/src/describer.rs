@@ -7,6 +7,7 @@ use std::path::Path;
 use doorslam_ipc::wire::DESCRIPTOR_DIM;
 
 use crate::bow::{orb_descriptors, Orb, Vocabulary};
+use crate::candidates::ChainConfig;
 use crate::image::GrayImage;
 use crate::model::PlaceRecognitionError;
 use crate::netvlad::NetVlad;
@@ -38,6 +39,18 @@ impl Method {
         match self {
             Method::NetVlad => NETVLAD_THRESHOLD,
             Method::BagOfWords => BOW_THRESHOLD,
+        }
+    }
+
+    /// The candidate chain for this descriptor: top-k below the match threshold, and the
+    /// temporal confirmation (BENCHMARKS.md: fitted on the validation towns).
+    pub fn default_chain(self) -> ChainConfig {
+        ChainConfig {
+            top_k: 3,
+            max_distance: self.default_threshold(),
+            window: 2,
+            min_support: 1,
+            max_gap: 3,
         }
     }
 }

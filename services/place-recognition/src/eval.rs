@@ -13,7 +13,7 @@
 //! the threshold gives the curve: precision = correct / predicted matches, recall =
 //! correct / queries that have a positive. `recall_at_1` is the recall with no threshold.
 
-use std::collections::HashSet;
+use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
 
 use doorslam_dataset::Dataset;
@@ -52,6 +52,17 @@ pub struct Keyframe {
 pub struct EvalSet {
     pub keyframes: Vec<Keyframe>,
     pub positives: HashSet<(usize, usize)>,
+    /// The `overlap` rows of `sim world` outputs, each widened as the positives are: the
+    /// keyframes of robot a near frame a, and of robot b near frame b (a true overlap, for
+    /// `place eval --verify`'s recall).
+    pub overlaps: Vec<(Vec<usize>, Vec<usize>)>,
+    /// The `aliased` pairs widened the same way (both orders): negatives that look alike.
+    pub aliased: HashSet<(usize, usize)>,
+    /// Each robot's folder (its calibration), by robot name.
+    pub robot_dirs: BTreeMap<String, PathBuf>,
+    /// The `sim world` outputs read and their seed (`world.txt`), to check that no
+    /// evaluation town was a training town of the model.
+    pub sim_seeds: Vec<(PathBuf, u64)>,
 }
 
 fn near(a: &Isometry3<f64>, b: &Isometry3<f64>, max_m: f64, max_deg: f64) -> bool {
@@ -92,6 +103,7 @@ impl EvalSet {
             } else {
                 set.keyframes
                     .extend(robot_keyframes(dir, &format!("{i}"), stride)?);
+                set.robot_dirs.insert(format!("{i}"), dir.clone());
             }
             if set.keyframes.len() == first {
                 return Err(EvalError::Input {
@@ -124,6 +136,9 @@ impl EvalSet {
             msg: e.to_string(),
         })?;
         let first = self.keyframes.len();
+        if let Some(seed) = world_seed(dir)? {
+            self.sim_seeds.push((dir.to_path_buf(), seed));
+        }
         let mut robots: Vec<String> = std::fs::read_dir(dir)
             .map_err(|e| EvalError::Input {
                 path: dir.to_path_buf(),
@@ -139,6 +154,7 @@ impl EvalSet {
         for r in &robots {
             let data = Dataset::open(&dir.join(r))?;
             all_poses.push(data.truth.unwrap_or_default());
+            self.robot_dirs.insert(format!("{index}/{r}"), dir.join(r));
             self.keyframes.extend(robot_keyframes(
                 &dir.join(r),
                 &format!("{index}/{r}"),
@@ -165,9 +181,16 @@ impl EvalSet {
                     ),
                 });
             };
-            if kind != "overlap" {
-                continue; // aliased pairs stay negatives
-            }
+            let aliased = match kind {
+                "overlap" => false,
+                "aliased" => true, // negatives, counted apart by --verify
+                other => {
+                    return Err(EvalError::Input {
+                        path: csv.clone(),
+                        msg: format!("line {}: unknown kind {other:?}", line + 1),
+                    })
+                }
+            };
             let frame = |s: &str, robot: usize| {
                 s.parse::<usize>()
                     .ok()
@@ -189,19 +212,54 @@ impl EvalSet {
                     .collect()
             };
             let (xa, xb) = (side(ra, &pa), side(rb, &pb));
+            let pairs = if aliased {
+                &mut self.aliased
+            } else {
+                &mut self.positives
+            };
             for &a in &xa {
                 for &b in &xb {
-                    self.positives.extend([(a, b), (b, a)]);
+                    pairs.extend([(a, b), (b, a)]);
                 }
+            }
+            if !aliased {
+                self.overlaps.push((xa, xb));
             }
         }
         Ok(())
+    }
+
+    /// The training towns of a model among the simulated towns read: an evaluation on a
+    /// town the model was trained on measures nothing (`place eval` refuses it).
+    pub fn training_towns(&self, trained_on: &[u64]) -> Vec<(PathBuf, u64)> {
+        self.sim_seeds
+            .iter()
+            .filter(|(_, s)| trained_on.contains(s))
+            .cloned()
+            .collect()
     }
 
     /// Whether keyframe `b` is another robot's (the only pairs that are queried).
     pub fn inter_robot(&self, a: usize, b: usize) -> bool {
         self.keyframes[a].robot != self.keyframes[b].robot
     }
+}
+
+/// The seed of a `sim world` output (`seed = N` in its `world.txt`); `None` without one.
+fn world_seed(dir: &Path) -> Result<Option<u64>, EvalError> {
+    let path = dir.join("world.txt");
+    let Ok(text) = std::fs::read_to_string(&path) else {
+        return Ok(None);
+    };
+    for (n, line) in text.lines().enumerate() {
+        if let Some(v) = line.strip_prefix("seed = ") {
+            return v.trim().parse().map(Some).map_err(|_| EvalError::Input {
+                path: path.clone(),
+                msg: format!("line {}: seed {v:?} is not a number", n + 1),
+            });
+        }
+    }
+    Ok(None)
 }
 
 /// Summary of one precision-recall curve.
@@ -341,6 +399,7 @@ mod tests {
                 })
                 .collect(),
             positives: positives.iter().copied().collect(),
+            ..Default::default()
         }
     }
 

@@ -113,6 +113,33 @@ impl MatchIndex {
         self.insert(d)
     }
 
+    /// The `k` nearest own keyframes of a descriptor nearer than `max_distance`, nearest
+    /// first: `(own key, distance)`. A descriptor of this robot's own keyframe (intra-robot
+    /// use) skips the keyframes within the temporal exclusion, and itself.
+    pub fn top_k(&self, d: &Descriptor, k: usize, max_distance: f32) -> Vec<(u64, f32)> {
+        let q = Quantized::new(d.clone());
+        let intra = key::robot(d.key) == Some(self.robot);
+        let qi = key::index(d.key);
+        let mut best: Vec<(u64, f32)> = Vec::with_capacity(k + 1);
+        for c in &self.own {
+            let ci = key::index(c.descriptor.key);
+            if intra && ci.abs_diff(qi) <= self.temporal_exclusion {
+                continue;
+            }
+            let d2 = q.distance2(c);
+            if d2 >= max_distance * max_distance
+                || (best.len() == k && best.last().is_some_and(|b| d2 >= b.1))
+            {
+                continue;
+            }
+            // Insertion into the short sorted list (k is small); ties keep index order.
+            let at = best.partition_point(|b| b.1 <= d2);
+            best.insert(at, (c.descriptor.key, d2));
+            best.truncate(k);
+        }
+        best.into_iter().map(|(c, d2)| (c, d2.sqrt())).collect()
+    }
+
     /// The nearest own keyframe of each received descriptor, for those nearer than the
     /// threshold: `Match { query: received key, candidate: own key, distance }`, in the
     /// order received. Descriptors of this robot's own keyframes (intra-robot use) skip

@@ -10,13 +10,17 @@
 //! - [`describer`]: both behind one interface; [`image`]: preprocessing;
 //! - [`matching`]: distances, also on the int8 wire form with integer dot products;
 //! - [`index`]: one robot's keyframes on the int8 form, matched against received ones;
+//! - [`candidates`]: the candidate chain (top-k, distance bound, temporal confirmation);
 //! - [`projection`]: PCA to the 128-D wire form (the bag of words' wire form);
 //! - [`service`]: the `place-recognition` service (keyframes in, descriptors out);
 //! - [`eval`]: precision-recall of inter-robot matches against ground truth;
+//!   [`chain_eval`]: the candidate chain and PnP verification offline (`place eval --verify`);
 //! - [`onnx`]: a small writer of ONNX files (tests build models without downloads);
 //!   [`model`]: a `[batch, d] -> [batch, d']` model and the onnxruntime environment.
 
 pub mod bow;
+pub mod candidates;
+pub mod chain_eval;
 pub mod describer;
 pub mod eval;
 pub mod image;
@@ -28,6 +32,7 @@ pub mod onnx;
 pub mod projection;
 pub mod service;
 
+pub use candidates::{CandidateChain, ChainConfig, ChainStats};
 pub use describer::{Describer, KeyframeInput, Method};
 pub use image::GrayImage;
 pub use index::{IndexError, MatchIndex};

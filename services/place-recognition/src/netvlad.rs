@@ -43,7 +43,12 @@ pub struct NetVlad {
     width: usize,
     height: usize,
     dim: usize,
+    training_towns: Vec<u64>,
 }
+
+/// ONNX metadata key naming the `sim world` seeds a model was trained on (comma
+/// separated), written by `model/build_model.py`.
+pub const TRAINING_TOWNS_KEY: &str = "doorslam.training_towns";
 
 impl std::fmt::Debug for NetVlad {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -124,6 +129,23 @@ impl NetVlad {
                 )))
             }
         };
+        let custom = session
+            .metadata()
+            .ok()
+            .and_then(|m| m.custom(TRAINING_TOWNS_KEY));
+        let training_towns = match custom {
+            None => Vec::new(),
+            Some(v) => v
+                .split(',')
+                .filter(|s| !s.trim().is_empty())
+                .map(|s| s.trim().parse::<u64>())
+                .collect::<Result<_, _>>()
+                .map_err(|_| {
+                    bad(format!(
+                        "metadata {TRAINING_TOWNS_KEY} = {v:?} is not a list of seeds"
+                    ))
+                })?,
+        };
         Ok(Self {
             session,
             name,
@@ -131,7 +153,14 @@ impl NetVlad {
             width,
             height,
             dim,
+            training_towns,
         })
+    }
+
+    /// The `sim world` seeds of the towns the model was trained on (from its metadata;
+    /// empty when it names none).
+    pub fn training_towns(&self) -> &[u64] {
+        &self.training_towns
     }
 
     pub fn dim(&self) -> usize {

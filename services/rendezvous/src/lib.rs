@@ -11,11 +11,14 @@
 //! - [`run`]: `doorslam service team` with those pieces: keyframes and descriptors in,
 //!   closures and relayed messages out;
 //! - [`store`]: own keyframes' verification packets and descriptors kept on disk, so a
-//!   restarted robot still offers its keyframes from before the restart.
+//!   restarted robot still offers its keyframes from before the restart;
+//! - [`own_loops`]: the robot's own loop closures, through the same candidate chain and
+//!   PnP, to the back-end (PCM among them there).
 //!
 //! A crate of its own because it composes services (front-end, place recognition, team
 //! link) that do not depend on each other; only this glue does.
 
+pub mod own_loops;
 pub mod pieces;
 pub mod run;
 pub mod store;

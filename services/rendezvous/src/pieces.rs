@@ -19,20 +19,26 @@ use doorslam_ipc::wire::{
     VerificationFeatures, DESCRIPTOR_DIM,
 };
 use doorslam_ipc::{EnvelopeEvent, Feature, Keyframe, PlaceDescriptor};
-use doorslam_place_recognition::MatchIndex;
+use doorslam_place_recognition::{CandidateChain, ChainConfig, ChainStats, MatchIndex};
 use doorslam_team::protocol::{BackendExchange, BackendRefusal, DescriptorBatch, DescriptorSource};
 use doorslam_team::{Pieces, Verifier};
 use serde::Serialize;
 
+use crate::own_loops::{OwnLoopStats, OwnLoops, VerifyInputs};
 use crate::store::{OwnStore, StoreError};
 
 /// How putative pairs are chosen and verified.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MatchSettings {
-    /// A received descriptor matches its nearest own keyframe when nearer than this
-    /// (Euclidean distance on the int8 wire form; place recognition's fitted threshold of
-    /// the descriptor in use, `[place] match_threshold`).
-    pub threshold: f32,
+    /// The candidate chain of received descriptors against own keyframes: top-k below the
+    /// match threshold (Euclidean distance on the int8 wire form; place recognition's
+    /// fitted threshold of the descriptor in use, `[place] match_threshold`), temporal
+    /// confirmation (`[place]`, [`doorslam_place_recognition::CandidateChain`]).
+    pub chain: ChainConfig,
+    /// The robot's own loops: the chain over its own descriptors against its keyframes
+    /// older than `temporal_exclusion` ids (`None`: off; `[place] own_loops`).
+    pub own_loops: Option<ChainConfig>,
+    pub temporal_exclusion: u64,
     /// Features in a verification packet (the strongest first, as the front-end orders
     /// them); bounds the packet's size (the front-end's packet holds at most
     /// [`MAX_PACKET_FEATURES`]: ≤ 20 kB).
@@ -42,8 +48,11 @@ pub struct MatchSettings {
 
 impl Default for MatchSettings {
     fn default() -> Self {
+        let chain = doorslam_place_recognition::Method::BagOfWords.default_chain();
         Self {
-            threshold: doorslam_place_recognition::Method::BagOfWords.default_threshold(),
+            own_loops: Some(chain.clone()),
+            chain,
+            temporal_exclusion: 10,
             max_packet_features: MAX_PACKET_FEATURES,
             verify: VerifyConfig::default(),
         }
@@ -67,6 +76,8 @@ pub struct PiecesStats {
     /// Own samples refused (wrong robot, wrong dimension, ...).
     pub refused_inputs: u64,
     pub putative_pairs: u64,
+    /// The candidate chain's stages over all peers (`putative_pairs` = its confirmed).
+    pub chain: ChainStats,
     pub verified: u64,
     /// Verification failures by reason.
     pub rejected: BTreeMap<String, u64>,
@@ -85,6 +96,8 @@ pub struct PiecesStats {
     /// Appends to the store that failed (logged; the keyframe is still offered until the
     /// next restart).
     pub store_errors: u64,
+    /// The robot's own loops (counted apart from the inter-robot closures above).
+    pub own_loops: OwnLoopStats,
 }
 
 /// What the pieces share.
@@ -99,6 +112,9 @@ pub struct State {
     /// the index matching received ones against them.
     descriptors: BTreeMap<u64, Descriptor>,
     index: MatchIndex,
+    /// The candidate chain of each peer robot's descriptors.
+    chains: BTreeMap<u8, CandidateChain>,
+    own_loops: Option<OwnLoops>,
     /// Team-in envelopes and closures waiting to be published to the back-end.
     to_backend: VecDeque<ToBackend>,
     closures: VecDeque<doorslam_ipc::LoopClosure>,
@@ -117,7 +133,12 @@ pub struct Shared(Arc<Mutex<State>>);
 
 impl Shared {
     pub fn new(robot: u8, calib: StereoCalibration, settings: MatchSettings) -> Self {
-        let index = MatchIndex::new(robot, settings.threshold, 0);
+        let index = MatchIndex::new(
+            robot,
+            settings.chain.max_distance,
+            settings.temporal_exclusion,
+        );
+        let own_loops = settings.own_loops.clone().map(OwnLoops::new);
         Self(Arc::new(Mutex::new(State {
             robot,
             calib,
@@ -125,6 +146,8 @@ impl Shared {
             features: BTreeMap::new(),
             descriptors: BTreeMap::new(),
             index,
+            chains: BTreeMap::new(),
+            own_loops,
             to_backend: VecDeque::new(),
             closures: VecDeque::new(),
             for_peers: BTreeMap::new(),
@@ -202,7 +225,19 @@ impl Shared {
     }
 
     pub fn stats(&self) -> PiecesStats {
-        self.lock().stats.clone()
+        let s = self.lock();
+        let mut stats = s.stats.clone();
+        for c in s.chains.values() {
+            let c = c.stats();
+            stats.chain.queries += c.queries;
+            stats.chain.ranked += c.ranked;
+            stats.chain.confirmed += c.confirmed;
+            stats.chain.unconfirmed += c.unconfirmed;
+        }
+        if let Some(own) = &s.own_loops {
+            stats.own_loops = own.stats();
+        }
+        stats
     }
 
     /// Keyframes known (the highest index + 1).
@@ -229,6 +264,7 @@ impl Shared {
             .collect();
         s.features.insert(kf.id, features);
         s.stats.keyframes += 1;
+        Self::own_loops(&mut s, None);
         let id = kf.id;
         Self::keep(&mut s, |s| {
             let k = key::symbol(s.robot, id).ok()?;
@@ -272,6 +308,8 @@ impl Shared {
                 )
             }
         };
+        // Own loops first: the new keyframe against the older ones, before it joins them.
+        Self::own_loops(&mut s, Some(&q));
         if let Err(e) = s.index.insert(q.clone()) {
             return refuse(&mut s, e.to_string());
         }
@@ -286,6 +324,35 @@ impl Shared {
             }))
         });
         Ok(())
+    }
+
+    /// Runs the own-loop chain on a new own descriptor (or, without one, retries the pairs
+    /// waiting for keyframe features); closures go to the back-end's queue.
+    fn own_loops(s: &mut State, descriptor: Option<&Descriptor>) {
+        let State {
+            robot,
+            calib,
+            settings,
+            features,
+            index,
+            own_loops,
+            closures,
+            ..
+        } = s;
+        let Some(own) = own_loops.as_mut() else {
+            return;
+        };
+        let inputs = VerifyInputs {
+            robot: *robot,
+            calib,
+            features,
+            config: &settings.verify,
+        };
+        let found = match descriptor {
+            Some(d) => own.on_descriptor(index, d, &inputs),
+            None => own.retry(&inputs),
+        };
+        closures.extend(found);
     }
 
     /// A message the back-end wants sent to robot `peer_robot` (its body goes out through
@@ -393,7 +460,20 @@ impl DescriptorSource for Places {
 
     fn match_descriptors(&mut self, _peer: &RobotId, received: &[Descriptor]) -> Vec<Match> {
         let mut s = self.0.lock();
-        let out = s.index.match_batch(received);
+        let Some(peer) = received.first().and_then(|d| key::robot(d.key)) else {
+            return Vec::new();
+        };
+        let State {
+            index,
+            chains,
+            settings,
+            ..
+        } = &mut *s;
+        let chain = chains
+            .entry(peer)
+            .or_insert_with(|| CandidateChain::new(settings.chain.clone()));
+        // One peer's descriptors per call (the protocol checks the batch's robot).
+        let out = chain.push(index, received);
         s.stats.putative_pairs += out.len() as u64;
         out
     }
@@ -709,7 +789,7 @@ mod tests {
             .unwrap();
         std::io::Write::write_all(&mut f, &[200, 1, 0, 0, 9, 9]).unwrap();
         drop(f);
-        let s = Shared::new(1, calib(), MatchSettings::default());
+        let s = Shared::new(1, calib(), nearest_only());
         s.open_store(&path).unwrap();
         assert_eq!(s.stats().restored_keyframes, 3);
         assert_eq!(s.stats().restored_descriptors, 3);
@@ -742,20 +822,105 @@ mod tests {
         assert!(e.contains("team.own") && e.contains("byte 0"), "{e}");
     }
 
+    /// Settings with the chain cut down to the nearest candidate (tests of other parts).
+    fn nearest_only() -> MatchSettings {
+        MatchSettings {
+            chain: ChainConfig::top_k_only(1, 0.367),
+            ..Default::default()
+        }
+    }
+
     #[test]
-    fn matching_keeps_the_nearest_below_the_threshold() {
+    fn received_descriptors_go_through_the_candidate_chain() {
         let s = Shared::new(1, calib(), MatchSettings::default());
-        for id in 0..5 {
+        for id in 0..10 {
             s.add_descriptor(&descriptor(1, id, &unit(id as usize)))
                 .unwrap();
         }
         let peer = RobotId::new("a").unwrap();
-        let near = Descriptor::quantize(key::symbol(0, 7).unwrap(), &unit(3)).unwrap();
-        let far = Descriptor::quantize(key::symbol(0, 8).unwrap(), &unit(100)).unwrap();
-        let m = Places(s.clone()).match_descriptors(&peer, &[near, far]);
-        assert_eq!(m.len(), 1, "{m:?}");
-        assert_eq!(m[0].candidate, key::symbol(1, 3).unwrap());
-        assert!(m[0].distance < 1e-3);
+        let batch = |ids: &[(u64, usize)]| -> Vec<Descriptor> {
+            ids.iter()
+                .map(|&(k, u)| Descriptor::quantize(key::symbol(0, k).unwrap(), &unit(u)).unwrap())
+                .collect()
+        };
+        // Robot a's keyframes 5, 6, 7 see b's 3, 4, 5: consecutive keyframes matching
+        // consecutive keyframes, all confirmed.
+        let m = Places(s.clone()).match_descriptors(&peer, &batch(&[(5, 3), (6, 4), (7, 5)]));
+        let pairs: Vec<(u64, u64)> = m
+            .iter()
+            .map(|m| (key::index(m.query), key::index(m.candidate)))
+            .collect();
+        assert_eq!(pairs, vec![(5, 3), (6, 4), (7, 5)]);
+        assert!(m.iter().all(|m| m.distance < 1e-3));
+        // Keyframe 20 looks like b's keyframe 1, but its neighbours look like nothing b
+        // has: no packet is asked for it.
+        let m = Places(s.clone()).match_descriptors(
+            &peer,
+            &batch(&[(19, 50), (20, 1), (21, 60), (22, 70), (23, 80)]),
+        );
+        assert!(m.is_empty(), "{m:?}");
+        let stats = s.stats();
+        assert_eq!(stats.putative_pairs, 3);
+        assert_eq!(
+            (
+                stats.chain.ranked,
+                stats.chain.confirmed,
+                stats.chain.unconfirmed
+            ),
+            (4, 3, 1)
+        );
+    }
+
+    #[test]
+    fn own_loops_are_verified_and_handed_to_the_back_end() {
+        // Robot b flies along x (2 m per keyframe), and its keyframes 25..=27 come back to
+        // where 2..=4 were: the same views, the same descriptors (a little off).
+        let s = Shared::new(1, calib(), MatchSettings::default());
+        let pose = |id: u64| {
+            let at = if (25..=27).contains(&id) { id - 23 } else { id };
+            SE3::translation(2.0 * at as f64, 0.0, 0.0)
+        };
+        for id in 0..28u64 {
+            s.add_keyframe(&keyframe(1, id, &pose(id))).unwrap();
+            let v = if (25..=27).contains(&id) {
+                let mut v = unit((id - 23) as usize);
+                v[100] = 0.05;
+                v
+            } else {
+                unit(id as usize)
+            };
+            s.add_descriptor(&descriptor(1, id, &v)).unwrap();
+        }
+        let (_, closures) = s.take_for_backend();
+        let pairs: Vec<(u32, u64, u32, u64)> = closures
+            .iter()
+            .map(|c| (c.robot_a, c.keyframe_a, c.robot_b, c.keyframe_b))
+            .collect();
+        assert_eq!(pairs, vec![(1, 25, 1, 2), (1, 26, 1, 3), (1, 27, 1, 4)]);
+        for c in &closures {
+            // The same place: the relative pose is the identity.
+            let z = doorslam_geometry::pose_from_array(&c.relative).unwrap();
+            assert!(z.translation.vector.norm() < 0.01, "{z:?}");
+        }
+        let own = s.stats().own_loops;
+        assert_eq!((own.verified, own.closures), (3, 3), "{own:?}");
+        // Counted apart from inter-robot closures.
+        assert_eq!(s.stats().closures_to_backend, 0);
+        // Off in the settings: none.
+        let off = Shared::new(
+            1,
+            calib(),
+            MatchSettings {
+                own_loops: None,
+                ..Default::default()
+            },
+        );
+        for id in 0..28u64 {
+            off.add_keyframe(&keyframe(1, id, &pose(id))).unwrap();
+            off.add_descriptor(&descriptor(1, id, &unit((id % 25) as usize)))
+                .unwrap();
+        }
+        assert!(off.take_for_backend().1.is_empty());
     }
 
     #[test]

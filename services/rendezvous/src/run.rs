@@ -181,8 +181,9 @@ pub fn run(
     let mut side = IpcSide::open(robot, robot_index, shared)?;
     tracing::info!(
         robot,
-        threshold = pieces.matching.threshold,
-        "team: place matching, PnP verification and the back-end relay over iceoryx2"
+        chain = ?pieces.matching.chain,
+        own_loops = pieces.matching.own_loops.is_some(),
+        "team: place matching (candidate chain), PnP verification and the back-end relay over iceoryx2"
     );
     run_robot(section, robot, robot_index, &mut side, stop)
 }
@@ -227,10 +228,18 @@ impl RendezvousSection {
         Ok(())
     }
 
-    /// The matching settings, with place recognition's distance threshold.
-    pub fn matching(&self, threshold: f32) -> MatchSettings {
+    /// The matching settings, with place recognition's candidate chain (`[place]`), own
+    /// loops on or off, and how recent an own keyframe is not a loop candidate.
+    pub fn matching(
+        &self,
+        chain: doorslam_place_recognition::ChainConfig,
+        own_loops: bool,
+        temporal_exclusion: u64,
+    ) -> MatchSettings {
         MatchSettings {
-            threshold,
+            own_loops: own_loops.then(|| chain.clone()),
+            chain,
+            temporal_exclusion,
             max_packet_features: self.max_packet_features,
             verify: self.verify.clone(),
         }

@@ -201,30 +201,21 @@ fn odometry_fields(
 }
 
 /// Checks a loop closure for the back-end of robot `robot_index`: the rules of
-/// [`check_closure`], and one of its keyframes must be this robot's while the other is
-/// another robot's (the team link hands over inter-robot closures only).
+/// [`check_closure`], and one of its keyframes must be this robot's: an inter-robot
+/// closure (the other keyframe another robot's) or one of this robot's own loops (both its
+/// own: the team link's intra-robot chain).
 pub fn check_own_closure(lc: &LoopClosure, robot_index: u32) -> Result<ClosureInput, InputError> {
     let c = check_closure(lc)?;
-    inter_robot_of(c, robot_index)
+    own_closure_of(c, robot_index)
 }
 
-fn inter_robot_of(c: ClosureInput, robot_index: u32) -> Result<ClosureInput, InputError> {
+fn own_closure_of(c: ClosureInput, robot_index: u32) -> Result<ClosureInput, InputError> {
     let check = Check {
         topic: Topic::Closures,
         robot: robot_index,
     };
     let (ra, rb) = (key::robot(c.key_a), key::robot(c.key_b));
     let me = u8::try_from(robot_index).ok();
-    if ra == rb {
-        return Err(check.fail(
-            "robot_b",
-            format!(
-                "{} and {} are keyframes of one robot: not an inter-robot closure",
-                key::label(c.key_a),
-                key::label(c.key_b)
-            ),
-        ));
-    }
     if ra != me && rb != me {
         return Err(check.fail(
             "robot_a",
@@ -263,7 +254,7 @@ pub(crate) fn check_journaled_closure(
         information: c.information("information", information)?,
         inliers: u32::try_from(inliers).unwrap_or(u32::MAX),
     };
-    inter_robot_of(input, robot_index)
+    own_closure_of(input, robot_index)
 }
 
 /// Checks a loop closure between keyframes of two robots of the team (or one).

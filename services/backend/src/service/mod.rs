@@ -16,6 +16,7 @@
 //! the way is logged as an error with the side file now holding the unread bytes.
 
 pub mod input;
+pub mod intra;
 pub mod output;
 pub mod state;
 pub mod team;
@@ -165,6 +166,7 @@ impl BackendSection {
                 ..AgentOptions::default()
             }),
             write_every: Duration::from_secs_f64(self.write_every_s),
+            intra_pcm: (self.pcm_threshold, self.pcm_min_clique),
         }
     }
 }
@@ -184,6 +186,8 @@ pub struct BackendConfig {
     pub distributed: Option<AgentOptions>,
     /// How often the output files are written (zero: only when stopping).
     pub write_every: Duration,
+    /// PCM of the robot's own loop closures: probability and smallest clique.
+    pub intra_pcm: (f64, usize),
 }
 
 /// Logs what happened to one sample (rejections name robot, topic and field).
@@ -364,7 +368,9 @@ impl TeamPorts {
 /// rejoins the team with a new epoch.
 pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
     let mut state = BackendState::new(config.robot_index, config.optimize_every)
-        .ok_or(ServiceError::Robot(config.robot_index))?;
+        .ok_or(ServiceError::Robot(config.robot_index))?
+        .with_intra_pcm(config.intra_pcm.0, config.intra_pcm.1)
+        .map_err(|e| ServiceError::Config(format!("backend.pcm_threshold: {e}")))?;
     let robot =
         u8::try_from(config.robot_index).map_err(|_| ServiceError::Robot(config.robot_index))?;
     if let Some(options) = &config.distributed {

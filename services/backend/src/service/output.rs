@@ -59,6 +59,10 @@ pub struct ReportJson {
     pub optimizations: usize,
     pub failed_optimizations: usize,
     pub team_refused: usize,
+    /// Own loop closures received, kept by PCM in the graph, and dropped again.
+    pub intra_closures: usize,
+    pub intra_kept: usize,
+    pub intra_retracted: usize,
 }
 
 impl From<&BackendReport> for ReportJson {
@@ -76,6 +80,9 @@ impl From<&BackendReport> for ReportJson {
             optimizations: r.optimizations,
             failed_optimizations: r.failed_optimizations,
             team_refused: r.team_refused,
+            intra_closures: r.intra_closures,
+            intra_kept: r.intra_kept,
+            intra_retracted: r.intra_retracted,
         }
     }
 }

@@ -13,6 +13,7 @@ use super::input::{
     check_journaled_closure, check_journaled_keyframe, check_journaled_odometry, check_keyframe,
     check_odometry, check_own_closure, ClosureInput, InputError, KeyframeInput, OdometryInput,
 };
+use super::intra::{is_intra, IntraLoops};
 use super::team::TeamBridge;
 use crate::graph::PoseGraph;
 use crate::journal::{Entry, JournalError, Recovery};
@@ -21,6 +22,11 @@ use crate::solver::{Optimizer, SolveError, SolverOptions, Summary};
 /// Odometry edges may overtake their keyframe (two channels), so a few wait; an edge that
 /// still waits when this many queue up refers to a keyframe that will not come.
 pub const MAX_PENDING_EDGES: usize = 4096;
+
+/// PCM of the robot's own loops by default: the `[backend]` defaults (`pcm_threshold`,
+/// `pcm_min_clique`).
+pub const INTRA_PCM_THRESHOLD: f64 = 0.99;
+pub const INTRA_MIN_CLIQUE: usize = 2;
 
 /// Where accepted entries go before they are applied (the journal; a `Vec` in tests).
 pub trait Append {
@@ -83,6 +89,12 @@ pub struct BackendReport {
     pub expired_closures: usize,
     /// Keyframes, edges or closures the distributed back-end refused (logged).
     pub team_refused: usize,
+    /// This robot's own loop closures (the team link's intra-robot chain): received (and
+    /// recovered), in the graph now (PCM's clique), and taken out again when PCM changed
+    /// its mind (the distributed back-end keeps what it was given).
+    pub intra_closures: usize,
+    pub intra_kept: usize,
+    pub intra_retracted: usize,
     pub optimizations: usize,
     pub failed_optimizations: usize,
 }
@@ -110,6 +122,9 @@ pub struct BackendState {
     optimizer: Option<Optimizer>,
     /// The distributed back-end, when this robot is part of a team.
     team: Option<TeamBridge>,
+    /// Own loop closures, PCM among them, and the ones the graph holds (by keys).
+    intra: IntraLoops,
+    intra_in_graph: std::collections::BTreeSet<(u64, u64)>,
     report: BackendReport,
 }
 
@@ -133,8 +148,26 @@ impl BackendState {
             since_optimized: 0,
             optimizer: None,
             team: None,
+            intra: IntraLoops::new(INTRA_PCM_THRESHOLD, INTRA_MIN_CLIQUE).ok()?,
+            intra_in_graph: Default::default(),
             report: BackendReport::default(),
         })
+    }
+
+    /// PCM of the robot's own loop closures with probability `p` and smallest clique
+    /// `min_clique` (`[backend] pcm_threshold`, `pcm_min_clique`).
+    pub fn with_intra_pcm(
+        mut self,
+        p: f64,
+        min_clique: usize,
+    ) -> Result<Self, crate::outliers::pcm::PcmError> {
+        self.intra = IntraLoops::new(p, min_clique)?;
+        Ok(self)
+    }
+
+    /// The robot's own loop closures received, and those the graph holds.
+    pub fn intra_closures(&self) -> (&[ClosureInput], usize) {
+        (self.intra.candidates(), self.intra_in_graph.len())
     }
 
     /// Adds the distributed back-end: every keyframe, edge and closure (recovered ones
@@ -255,6 +288,7 @@ impl BackendState {
                 self.report.rejected_from_journal += 1;
             }
         }
+        self.apply_intra();
         // The optimizer is rebuilt lazily for the recovered graph.
         self.since_optimized = self.optimize_every;
     }
@@ -309,6 +343,7 @@ impl BackendState {
         };
         let pair = (input.key_a, input.key_b);
         if self.closures.contains(&pair)
+            || self.intra.contains(&input)
             || self
                 .pending_closures
                 .iter()
@@ -319,8 +354,13 @@ impl BackendState {
         }
         if self.can_insert_closure(&input) {
             self.journal_closure(&input, journal)?;
+            let intra = is_intra(&input);
             self.insert_closure(input);
-            self.report.accepted_closures += 1;
+            if intra {
+                self.apply_intra();
+            } else {
+                self.report.accepted_closures += 1;
+            }
             return Ok(Outcome::Accepted);
         }
         if self.pending_closures.len() >= MAX_PENDING_EDGES {
@@ -439,8 +479,14 @@ impl BackendState {
         }
     }
 
-    /// Whether this robot's keyframe of the closure is in the graph (and the closure is new).
+    /// Whether this robot's keyframe of the closure is in the graph (both, for one of its
+    /// own loops) and the closure is new.
     fn can_insert_closure(&self, c: &ClosureInput) -> bool {
+        if is_intra(c) {
+            return self.graph.index_of(c.key_a).is_some()
+                && self.graph.index_of(c.key_b).is_some()
+                && !self.intra.contains(c);
+        }
         let own = if key::robot(c.key_a) == Some(self.robot) {
             c.key_a
         } else {
@@ -464,8 +510,15 @@ impl BackendState {
     }
 
     /// Records a closure whose keyframe of this robot is in the graph; the local graph
-    /// holds this robot's poses only, so the closure goes to the distributed back-end.
+    /// holds this robot's poses only, so an inter-robot closure goes to the distributed
+    /// back-end; one of the robot's own loops becomes a PCM candidate ([`Self::apply_intra`]
+    /// puts the consistent ones in the graph).
     fn insert_closure(&mut self, c: ClosureInput) {
+        if is_intra(&c) {
+            self.report.intra_closures += 1;
+            self.intra.add(c);
+            return;
+        }
         self.closures.insert((c.key_a, c.key_b));
         self.closures.insert((c.key_b, c.key_a));
         self.closure_list.push(c.clone());
@@ -479,6 +532,83 @@ impl BackendState {
                 );
             }
         }
+    }
+
+    /// PCM over the robot's own loop closures; the graph then holds exactly the kept ones
+    /// (a closure PCM drops again is taken out by rebuilding the graph's edges; the
+    /// distributed back-end, which cannot take an edge back, keeps it and the count says so).
+    fn apply_intra(&mut self) {
+        match self.intra.check(&self.graph) {
+            Ok(false) => return,
+            Ok(true) => {}
+            Err(e) => {
+                tracing::error!("backend: PCM of the robot's own loops: {e}");
+                return;
+            }
+        }
+        let kept: std::collections::BTreeSet<(u64, u64)> =
+            self.intra.kept().map(|c| (c.key_a, c.key_b)).collect();
+        let dropped: Vec<(u64, u64)> = self.intra_in_graph.difference(&kept).copied().collect();
+        if !dropped.is_empty() {
+            self.report.intra_retracted += dropped.len();
+            tracing::warn!(
+                closures = dropped.len(),
+                "backend: PCM dropped own loop closures it had kept; taken out of the graph"
+            );
+            let mut graph = PoseGraph::new();
+            for (&k, p) in self.graph.keys().iter().zip(self.graph.poses()) {
+                graph.add_pose(k, *p);
+            }
+            let keys = self.graph.keys().to_vec();
+            for e in self.graph.edges() {
+                let pair = (keys[e.i], keys[e.j]);
+                if dropped.contains(&pair) {
+                    continue;
+                }
+                let _ = graph.add_edge(e.i, e.j, e.measured, e.information);
+            }
+            self.graph = graph;
+            self.optimizer = None;
+            for p in &dropped {
+                self.intra_in_graph.remove(p);
+            }
+        }
+        let new: Vec<ClosureInput> = self
+            .intra
+            .kept()
+            .filter(|c| !self.intra_in_graph.contains(&(c.key_a, c.key_b)))
+            .cloned()
+            .collect();
+        for c in new {
+            let (Some(i), Some(j)) = (self.graph.index_of(c.key_a), self.graph.index_of(c.key_b))
+            else {
+                continue;
+            };
+            match self.graph.add_edge(i, j, c.relative, c.information) {
+                Ok(_) => {
+                    self.intra_in_graph.insert((c.key_a, c.key_b));
+                    self.since_optimized = self.optimize_every;
+                    if let Some(team) = self.team.as_mut() {
+                        if let Err(e) =
+                            team.add_odometry(c.key_a, c.key_b, c.relative, c.information)
+                        {
+                            self.report.team_refused += 1;
+                            tracing::error!(
+                                "backend: distributed back-end refused own loop {} - {}: {e}",
+                                key::label(c.key_a),
+                                key::label(c.key_b)
+                            );
+                        }
+                    }
+                }
+                Err(e) => tracing::error!(
+                    "backend: own loop {} - {} refused by the graph: {e}",
+                    key::label(c.key_a),
+                    key::label(c.key_b)
+                ),
+            }
+        }
+        self.report.intra_kept = self.intra_in_graph.len();
     }
 
     fn can_insert_edge(&self, e: &OdometryInput) -> bool {
@@ -547,16 +677,24 @@ impl BackendState {
         }
         self.pending = waiting;
         let mut waiting = VecDeque::with_capacity(self.pending_closures.len());
+        let mut intra = false;
         while let Some(c) = self.pending_closures.pop_front() {
             if self.can_insert_closure(&c) {
                 self.journal_closure(&c, journal)?;
+                if is_intra(&c) {
+                    intra = true;
+                } else {
+                    self.report.accepted_closures += 1;
+                }
                 self.insert_closure(c);
-                self.report.accepted_closures += 1;
             } else {
                 waiting.push_back(c);
             }
         }
         self.pending_closures = waiting;
+        if intra {
+            self.apply_intra();
+        }
         Ok(())
     }
 }

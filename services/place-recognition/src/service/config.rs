@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use serde::Deserialize;
 
 use crate::bow::default_vocabulary_path;
+use crate::candidates::ChainConfig;
 use crate::describer::Method;
 use crate::netvlad::default_model_path;
 
@@ -58,6 +59,26 @@ pub struct PlaceSection {
     /// features).
     #[serde(default)]
     pub bow_features: BowFeatures,
+    /// The candidate chain the team link runs on received descriptors (and on the robot's
+    /// own, for its own loops): candidates per query, and the temporal confirmation
+    /// (`temporal_window` keyframes on each side, `min_support` of them agreeing within
+    /// `max_gap` keyframes; 0: no check). Defaults: the method's, [`Method::default_chain`].
+    #[serde(default)]
+    pub top_k: Option<usize>,
+    #[serde(default)]
+    pub temporal_window: Option<u64>,
+    #[serde(default)]
+    pub min_support: Option<usize>,
+    #[serde(default)]
+    pub max_gap: Option<u64>,
+    /// Close the robot's own loops: its new keyframes against its older ones (beyond
+    /// `temporal_exclusion`), through the same chain and PnP, PCM in the back-end.
+    #[serde(default = "default_true")]
+    pub own_loops: bool,
+}
+
+fn default_true() -> bool {
+    true
 }
 
 fn default_method() -> Method {
@@ -88,6 +109,11 @@ impl Default for PlaceSection {
             frame_cache: default_frame_cache(),
             temporal_exclusion: default_temporal_exclusion(),
             bow_features: BowFeatures::default(),
+            top_k: None,
+            temporal_window: None,
+            min_support: None,
+            max_gap: None,
+            own_loops: true,
         }
     }
 }
@@ -132,7 +158,31 @@ impl PlaceSection {
                 "1 to 256 frames",
             );
         }
+        let chain = self.chain();
+        if !(1..=64).contains(&chain.top_k) {
+            return bad("top_k", chain.top_k.to_string(), "1 to 64 candidates");
+        }
+        if chain.min_support as u64 > 2 * chain.window {
+            return bad(
+                "min_support",
+                chain.min_support.to_string(),
+                "at most the 2 x temporal_window neighbours a query has",
+            );
+        }
         Ok(())
+    }
+
+    /// The candidate chain: the method's defaults with this section's values.
+    pub fn chain(&self) -> ChainConfig {
+        let mut c = self.method.default_chain();
+        if let Some(t) = self.match_threshold {
+            c.max_distance = t;
+        }
+        c.top_k = self.top_k.unwrap_or(c.top_k);
+        c.window = self.temporal_window.unwrap_or(c.window);
+        c.min_support = self.min_support.unwrap_or(c.min_support);
+        c.max_gap = self.max_gap.unwrap_or(c.max_gap);
+        c
     }
 
     /// The settings of the place-recognition service of robot `robot` (index
@@ -215,6 +265,21 @@ mod tests {
                     ..Default::default()
                 },
                 "place.frame_cache",
+            ),
+            (
+                PlaceSection {
+                    top_k: Some(0),
+                    ..Default::default()
+                },
+                "place.top_k",
+            ),
+            (
+                PlaceSection {
+                    temporal_window: Some(1),
+                    min_support: Some(3),
+                    ..Default::default()
+                },
+                "place.min_support",
             ),
         ] {
             let err = section.validate().unwrap_err().to_string();

@@ -1,0 +1,353 @@
+//! The whole candidate chain offline (`doorslam place eval DIR... --verify`): descriptors →
+//! top-k → temporal check → PnP verification on the front-end's keyframe features, against
+//! ground truth, with the bytes the rendezvous protocol would send.
+//!
+//! Every pair of robots α < β meets once, after the flight: α sends all its descriptors,
+//! β runs the [`CandidateChain`] over them against its own keyframes and sends back the
+//! confirmed pairs and, once per candidate keyframe, its verification packet (the wire
+//! form: at most `max_packet_features` features); α verifies each pair on its own
+//! keyframe's full features (the front-end's PnP-RANSAC, as the team link does) and sends
+//! the accepted closures. A verified closure is **false** when its relative pose is more
+//! than [`FALSE_M`] or [`FALSE_DEG`] from the true one (`X_c⁻¹ X_q` from ground truth),
+//! **aliased** when, in addition, its pair is an `aliased` row of `closures.csv` (copies of
+//! one building); a true **overlap** (an `overlap` row, widened as the place-eval
+//! positives) is **found** when a true verified closure joins its two sides.
+//! `bytes_per_true_closure` divides every byte the exchange would send (descriptors,
+//! matches, packets, closures; message headers included, acknowledgements and Zenoh's
+//! framing not) by the true verified closures.
+
+use std::collections::{BTreeMap, BTreeSet, HashSet};
+
+use doorslam_dataset::StereoCalibration;
+use doorslam_frontend::verify_bench::pose_error;
+use doorslam_frontend::{from_packet, to_packet, verify, Feature, VerifyConfig};
+use doorslam_geometry::{key, reverse_measurement};
+use doorslam_ipc::wire::{
+    Body, Descriptor, Descriptors, Header, Information, LoopClosure, LoopClosures, Matches,
+    Message, Pose, RobotId, MAX_DESCRIPTORS, MAX_LOOP_CLOSURES, MAX_MATCHES,
+};
+use serde::Serialize;
+
+use crate::candidates::{CandidateChain, ChainConfig, ChainStats};
+use crate::eval::EvalSet;
+use crate::index::MatchIndex;
+
+/// A verified closure further than this from the truth is false (metres, degrees).
+pub const FALSE_M: f64 = 2.0;
+pub const FALSE_DEG: f64 = 15.0;
+
+/// What `--verify` measures.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct ChainReport {
+    /// The chain's stages, summed over the robot pairs.
+    pub chain: ChainStats,
+    /// Pairs sent to verification (the chain's confirmed pairs).
+    pub verification_requests: u64,
+    /// Distinct candidate keyframes whose packet was sent.
+    pub packets: u64,
+    pub verified: u64,
+    pub verified_true: u64,
+    pub verified_false: u64,
+    pub verified_aliased: u64,
+    /// Verification refusals by reason.
+    pub rejected: BTreeMap<String, u64>,
+    pub true_overlaps: u64,
+    pub true_overlaps_found: u64,
+    pub verified_recall: f64,
+    pub bytes: ChainBytes,
+    /// `bytes.total / verified_true` (`None` without a true closure).
+    pub bytes_per_true_closure: Option<f64>,
+    /// Largest error of a true verified closure (m, degrees).
+    pub worst_true_error_m: f64,
+    pub worst_true_error_deg: f64,
+    /// Time of the verifications (ms, one thread).
+    pub ms_per_verification: f64,
+}
+
+/// Bytes of each message kind of the exchange (encoded messages, headers included).
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize)]
+pub struct ChainBytes {
+    pub descriptors: u64,
+    pub matches: u64,
+    pub packets: u64,
+    pub closures: u64,
+    pub total: u64,
+}
+
+/// The inputs of one keyframe: its wire descriptor and its front-end features.
+#[derive(Debug, Clone)]
+pub struct ChainInput<'a> {
+    pub set: &'a EvalSet,
+    /// Wire-form descriptor of every keyframe of `set` (128 values).
+    pub descriptors: &'a [Vec<f32>],
+    /// The front-end's keyframe features of every keyframe (strongest first).
+    pub features: &'a [Vec<Feature>],
+    /// Rectified camera of each keyframe's robot.
+    pub calibration: &'a [StereoCalibration],
+}
+
+/// Robots of the set in name order, and each keyframe's robot number and id (its frame).
+fn robots(set: &EvalSet) -> (Vec<String>, Vec<(u8, u64)>) {
+    let names: Vec<String> = set
+        .keyframes
+        .iter()
+        .map(|k| k.robot.clone())
+        .collect::<BTreeSet<_>>()
+        .into_iter()
+        .collect();
+    let of = |r: &str| names.iter().position(|n| n == r).unwrap_or(0) as u8;
+    let ids = set
+        .keyframes
+        .iter()
+        .map(|k| (of(&k.robot), k.frame as u64))
+        .collect();
+    (names, ids)
+}
+
+/// Encoded size of a message from robot `robot` (ids "r0".."r51").
+fn encoded(robot: u8, body: impl Into<Body>) -> Result<u64, String> {
+    let sender = RobotId::new(&format!("r{robot}")).map_err(|e| e.to_string())?;
+    let header = Header {
+        sender,
+        epoch: 1,
+        sequence: 1,
+    };
+    Ok(Message::new(header, body).encoded_len() as u64)
+}
+
+/// Runs the chain over every pair of robots; errors only on inputs that cannot be encoded
+/// (a descriptor that is not 128 finite values, an id beyond the key space).
+pub fn evaluate_chain(
+    input: &ChainInput<'_>,
+    chain_config: &ChainConfig,
+    verify_config: &VerifyConfig,
+    max_packet_features: usize,
+) -> Result<ChainReport, String> {
+    let set = input.set;
+    let (names, ids) = robots(set);
+    let mut report = ChainReport::default();
+    let by_key: BTreeMap<u64, usize> = ids
+        .iter()
+        .enumerate()
+        .map(|(i, &(r, f))| key::symbol(r, f).map(|k| (k, i)))
+        .collect::<Result<_, _>>()
+        .map_err(|e| e.to_string())?;
+    let wire = |i: usize| -> Result<Descriptor, String> {
+        let k = key::symbol(ids[i].0, ids[i].1).map_err(|e| e.to_string())?;
+        Descriptor::quantize(k, &input.descriptors[i]).map_err(|e| format!("keyframe {i}: {e}"))
+    };
+    let mut found: HashSet<(usize, usize)> = HashSet::new();
+    let mut verify_ms = Vec::new();
+    for beta in 0..names.len() as u8 {
+        let own: Vec<usize> = (0..ids.len()).filter(|&i| ids[i].0 == beta).collect();
+        let mut index = MatchIndex::new(beta, chain_config.max_distance, 0);
+        for &i in &own {
+            index.insert(wire(i)?).map_err(|e| e.to_string())?;
+        }
+        for alpha in 0..beta {
+            let queries: Vec<usize> = (0..ids.len()).filter(|&i| ids[i].0 == alpha).collect();
+            let received = queries
+                .iter()
+                .map(|&i| wire(i))
+                .collect::<Result<Vec<_>, _>>()?;
+            for chunk in received.chunks(MAX_DESCRIPTORS) {
+                let range = key::index(chunk[0].key)..key::index(chunk[chunk.len() - 1].key) + 1;
+                report.bytes.descriptors += encoded(
+                    alpha,
+                    Descriptors {
+                        robot: alpha,
+                        keyframes: range,
+                        descriptors: chunk.to_vec(),
+                    },
+                )?;
+            }
+            let mut chain = CandidateChain::new(chain_config.clone());
+            let mut pairs = chain.push(&index, &received);
+            pairs.extend(chain.flush());
+            add_stats(&mut report.chain, chain.stats());
+            for chunk in pairs.chunks(MAX_MATCHES) {
+                report.bytes.matches += encoded(
+                    beta,
+                    Matches {
+                        matches: chunk.to_vec(),
+                    },
+                )?;
+            }
+            report.verification_requests += pairs.len() as u64;
+            let mut packets = BTreeMap::new();
+            let mut closures = Vec::new();
+            for m in &pairs {
+                let (q, c) = (by_key[&m.query], by_key[&m.candidate]);
+                if !packets.contains_key(&c) {
+                    let packet = to_packet(
+                        m.candidate,
+                        &input.calibration[c],
+                        &input.features[c],
+                        max_packet_features,
+                    )
+                    .map_err(|e| format!("packet of keyframe {c}: {e}"))?;
+                    report.bytes.packets += encoded(beta, packet.clone())?;
+                    packets.insert(c, packet);
+                }
+                let (remote_calib, remote) =
+                    from_packet(&packets[&c], verify_config.disparity_sigma_px);
+                let start = std::time::Instant::now();
+                let outcome = verify(
+                    &input.calibration[q],
+                    &input.features[q],
+                    &remote_calib,
+                    &remote,
+                    verify_config,
+                );
+                verify_ms.push(start.elapsed().as_secs_f64() * 1e3);
+                let verified = match outcome {
+                    Ok(v) => v,
+                    Err(r) => {
+                        *report.rejected.entry(r.name().into()).or_default() += 1;
+                        continue;
+                    }
+                };
+                report.verified += 1;
+                // X_c⁻¹ X_q: the query's camera in the candidate's frame.
+                let truth = set.keyframes[c].pose.inverse() * set.keyframes[q].pose;
+                let (deg, m_err) = pose_error(&truth, &verified.relative);
+                if m_err > FALSE_M || deg > FALSE_DEG {
+                    report.verified_false += 1;
+                    if set.aliased.contains(&(q, c)) {
+                        report.verified_aliased += 1;
+                    }
+                } else {
+                    report.verified_true += 1;
+                    report.worst_true_error_m = report.worst_true_error_m.max(m_err);
+                    report.worst_true_error_deg = report.worst_true_error_deg.max(deg);
+                    found.insert((q, c));
+                }
+                // The closure α sends: from its keyframe to β's (as the team link does).
+                let (z, information) =
+                    reverse_measurement(&verified.relative, &verified.information);
+                if let (Ok(relative), Ok(information)) =
+                    (Pose::from_se3(&z), Information::from_matrix(&information))
+                {
+                    closures.push(LoopClosure {
+                        key_a: m.query,
+                        key_b: m.candidate,
+                        relative,
+                        information,
+                        inliers: verified.inliers as u32,
+                    });
+                }
+            }
+            report.packets += packets.len() as u64;
+            for chunk in closures.chunks(MAX_LOOP_CLOSURES) {
+                report.bytes.closures += encoded(
+                    alpha,
+                    LoopClosures {
+                        closures: chunk.to_vec(),
+                    },
+                )?;
+            }
+        }
+    }
+    report.true_overlaps = set.overlaps.len() as u64;
+    report.true_overlaps_found = set
+        .overlaps
+        .iter()
+        .filter(|(a, b)| {
+            a.iter().any(|&q| {
+                b.iter()
+                    .any(|&c| found.contains(&(q, c)) || found.contains(&(c, q)))
+            })
+        })
+        .count() as u64;
+    report.verified_recall =
+        report.true_overlaps_found as f64 / (report.true_overlaps as f64).max(1.0);
+    let b = &mut report.bytes;
+    b.total = b.descriptors + b.matches + b.packets + b.closures;
+    report.bytes_per_true_closure =
+        (report.verified_true > 0).then(|| b.total as f64 / report.verified_true as f64);
+    report.ms_per_verification = median(&mut verify_ms);
+    Ok(report)
+}
+
+fn add_stats(total: &mut ChainStats, s: &ChainStats) {
+    total.queries += s.queries;
+    total.ranked += s.ranked;
+    total.confirmed += s.confirmed;
+    total.unconfirmed += s.unconfirmed;
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// The front-end's keyframe features of every keyframe of `set` (GFTT + ORB with a stereo
+/// match, strongest first: what a `Keyframe` sample carries), the rectified camera of each,
+/// and the milliseconds per keyframe; `progress(done, total)` hears about each.
+pub fn keyframe_features(
+    set: &EvalSet,
+    vo: &doorslam_frontend::VoConfig,
+    progress: &dyn Fn(usize, usize),
+) -> Result<(Vec<Vec<Feature>>, Vec<StereoCalibration>, f64), crate::eval::EvalError> {
+    let mut cameras: BTreeMap<String, (StereoCalibration, doorslam_frontend::StereoVo)> =
+        BTreeMap::new();
+    let input = |path: &std::path::Path, msg: String| crate::eval::EvalError::Input {
+        path: path.to_path_buf(),
+        msg,
+    };
+    let (mut features, mut calibration) = (Vec::new(), Vec::new());
+    let mut seconds = 0.0;
+    for (i, k) in set.keyframes.iter().enumerate() {
+        if !cameras.contains_key(&k.robot) {
+            let dir = set
+                .robot_dirs
+                .get(&k.robot)
+                .ok_or_else(|| input(&k.image, format!("no folder for robot {}", k.robot)))?;
+            let camera = doorslam_dataset::Dataset::open(dir)?.stereo()?;
+            if camera.rectifier.is_some() {
+                return Err(input(
+                    dir,
+                    "raw (EuRoC) frames need rectifying: --verify reads rectified \
+                     KITTI-layout folders and `sim world` outputs"
+                        .into(),
+                ));
+            }
+            let calib = camera.calibration;
+            let stereo = doorslam_frontend::StereoVo::new(calib, vo.clone())
+                .map_err(|e| input(dir, e.to_string()))?;
+            cameras.insert(k.robot.clone(), (calib, stereo));
+        }
+        let (calib, stereo) = cameras
+            .get_mut(&k.robot)
+            .ok_or_else(|| input(&k.image, "no camera".into()))?;
+        let right = k
+            .right
+            .as_ref()
+            .ok_or_else(|| input(&k.image, "no right image: --verify needs stereo".into()))?;
+        let (w, h, left_px) = doorslam_dataset::read_gray_png(&k.image)?;
+        let (wr, hr, right_px) = doorslam_dataset::read_gray_png(right)?;
+        if (w, h) != (wr, hr) {
+            return Err(input(
+                right,
+                format!("{wr}x{hr}, the left image is {w}x{h}"),
+            ));
+        }
+        let start = std::time::Instant::now();
+        let bad = |e: doorslam_frontend::FrontendError| input(&k.image, e.to_string());
+        let left = doorslam_frontend::Gray::new(w as usize, h as usize, &left_px).map_err(bad)?;
+        let right = doorslam_frontend::Gray::new(w as usize, h as usize, &right_px).map_err(bad)?;
+        let f = stereo.keyframe_features(&left, &right).map_err(bad)?;
+        seconds += start.elapsed().as_secs_f64();
+        features.push(f);
+        calibration.push(*calib);
+        progress(i + 1, set.keyframes.len());
+    }
+    Ok((
+        features,
+        calibration,
+        1e3 * seconds / set.keyframes.len().max(1) as f64,
+    ))
+}
