@@ -33,6 +33,7 @@
 mod camera;
 mod cull;
 pub mod demo;
+pub mod dpgo;
 mod error;
 pub mod experiments;
 pub mod flights;

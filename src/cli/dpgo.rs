@@ -78,6 +78,13 @@ pub struct DpgoArgs {
     /// (to measure what the updates save).
     #[arg(long)]
     pub whole_graphs: bool,
+    /// Condensed method: condense each robot's graph once, at its odometry (the scheme
+    /// before relinearization, to measure what relinearizing buys).
+    #[arg(long)]
+    pub no_relinearize: bool,
+    /// Iteration limit of the solver of the team's separator graph (condensed method).
+    #[arg(long)]
+    pub max_iterations: Option<usize>,
     /// Plain Gauss-Seidel / block-coordinate descent, without Nesterov momentum.
     #[arg(long)]
     pub no_momentum: bool,
@@ -186,6 +193,15 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         agent.gamma = g;
     }
     agent.momentum = !args.no_momentum;
+    if args.no_relinearize {
+        agent.relinearize_fraction = f64::INFINITY;
+    }
+    if let Some(n) = args.max_iterations {
+        if n == 0 {
+            bail!("--max-iterations 0: at least one iteration");
+        }
+        agent.solver.max_iterations = n;
+    }
     agent.graph_updates = !args.whole_graphs;
     if args.stream == Some(0) {
         bail!("--stream 0: at least one pose per round");

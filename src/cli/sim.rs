@@ -23,6 +23,11 @@ pub enum SimCommand {
     /// PCM threshold sweep on simulated teams (paper Fig. 5/6): outliers and inliers
     /// rejected and ATE after PGO, for PCM alone, PCM + re-admission, and PCM + GNC.
     PcmSweep(SweepArgs),
+    /// A single-robot pose graph cut into a team, as DOOR-SLAM's KITTI 00 split: robot r
+    /// owns the r-th block of consecutive poses, the odometry between blocks is dropped,
+    /// loops across blocks become inter-robot closures; planar graphs embedded in 3-D.
+    /// Writes OUT (g2o, multi-robot keys) for `doorslam dpgo`.
+    Split(SplitArgs),
     /// Synthetic stereo world: N drones flying through a textured town; writes one
     /// KITTI-layout sequence per robot with ground truth, calibration and a rendezvous
     /// event log.
@@ -68,8 +73,43 @@ pub struct GraphArgs {
     pub out: PathBuf,
 }
 
+/// `sim split`.
+#[derive(Debug, Args)]
+pub struct SplitArgs {
+    /// A single-robot g2o graph (2-D or 3-D).
+    pub file: PathBuf,
+    #[arg(long, default_value_t = 5)]
+    pub robots: usize,
+    /// The team's graph (g2o).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+fn run_split(a: SplitArgs) -> Result<()> {
+    let file = doorslam_backend::read_g2o(&a.file, doorslam_backend::UnknownTags::Error)
+        .with_context(|| format!("{}", a.file.display()))?;
+    let team = doorslam_hil::dpgo::split_into_team(&file.graph, a.robots)
+        .with_context(|| format!("{}", a.file.display()))?;
+    let inter = team
+        .edges()
+        .iter()
+        .filter(|e| team.edge_class(e) == doorslam_backend::EdgeClass::InterLoop)
+        .count();
+    doorslam_backend::write_g2o(&doorslam_backend::Graph::Se3(team.clone()), &a.out)
+        .with_context(|| format!("{}", a.out.display()))?;
+    println!(
+        "{}: {} robots, {} poses, {} edges ({inter} inter-robot closures)",
+        a.out.display(),
+        a.robots,
+        team.len(),
+        team.edges().len()
+    );
+    Ok(())
+}
+
 pub fn run(args: SimArgs) -> Result<()> {
     match args.command {
+        SimCommand::Split(a) => run_split(a)?,
         SimCommand::PcmSweep(a) => run_sweep(a)?,
         SimCommand::World(a) => run_world(a)?,
         SimCommand::Graph(a) => {

@@ -50,10 +50,10 @@ pub struct GraphEdge {
 /// |---|---|
 /// | varint | key a's index, zigzag difference from the previous edge's (first: from 0) |
 /// | 1 + varint | key b: robot byte, then its index as a zigzag difference from key a's index if the robot is the origin (a chain edge: small), else the index |
-/// | 10–16 | relative pose, as `CompactPose` |
+/// | 13–25 | relative pose, as `CompactPose` |
 /// | 1 (+ 46) | 0: the same information as the previous edge (odometry and closures of one sensor share it); 1: an `Information` follows (refused if equal to the previous one, so the encoding stays canonical) |
 ///
-/// A chain edge is ~17 bytes with repeated information and ~63 with its own compounded
+/// A chain edge is ~22 bytes with repeated information and ~68 with its own compounded
 /// information, against 82 for a `LoopClosures` entry.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SeparatorGraph {

@@ -16,7 +16,7 @@ use crate::shm::MAX_KEYFRAME_FEATURES;
 /// The wire version this build speaks. A message of any other version is refused with
 /// [`WireError::UnknownVersion`]: a layout change bumps it (2: verification features carry
 /// the camera, and a disparity instead of a 3-D point).
-pub const WIRE_VERSION: u8 = 2;
+pub const WIRE_VERSION: u8 = 3;
 
 /// Most descriptors in one [`Descriptors`] batch.
 pub const MAX_DESCRIPTORS: usize = 4096;
@@ -239,7 +239,7 @@ pub const ESTIMATES_CONVERGED: u8 = 1;
 /// Layout: optimization (varint), round (varint), stage (u8), flags (u8), anchor (u8),
 /// robot (u8), count (varint), then per estimate the gap from the previous index (the
 /// first: the index itself; varint, ≥ 1 after the first) and its value: 18 bytes for a
-/// relaxed rotation, 9–15 for a compact pose. Keys are the `robot`'s, strictly ascending,
+/// relaxed rotation, 13–25 for a compact pose. Keys are the `robot`'s, strictly ascending,
 /// so a key costs 1–2 bytes instead of 2–4.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PoseEstimates {

@@ -528,34 +528,39 @@ impl VerificationFeature {
 
 /// Largest translation component a [`CompactPose`] carries: 1,000 km, in metres.
 pub const MAX_COMPACT_TRANSLATION_M: f64 = 1.0e6;
-/// Translation step of a [`CompactPose`]: 1 mm (rounding error ≤ 0.5 mm per axis).
-pub const COMPACT_TRANSLATION_STEP_M: f64 = 1.0e-3;
-/// Quaternion step of a [`CompactPose`]: the three smallest components in 1/46341
-/// (i16 over ±1/√2, the most the three smaller components of a unit quaternion reach).
-pub const COMPACT_QUATERNION_STEPS: f64 = 32767.0 * std::f64::consts::SQRT_2;
+/// Translation step of a [`CompactPose`]: 0.1 mm (rounding error ≤ 0.05 mm per axis).
+pub const COMPACT_TRANSLATION_STEP_M: f64 = 1.0e-4;
+/// Largest magnitude of a quaternion component in a [`CompactPose`]: 24-bit two's
+/// complement.
+pub const COMPACT_QUATERNION_MAX: i32 = (1 << 23) - 1;
+/// Quaternion step of a [`CompactPose`]: the three smallest components in 1/11863282
+/// (24 bits over ±1/√2, the most the three smaller components of a unit quaternion reach).
+pub const COMPACT_QUATERNION_STEPS: f64 = COMPACT_QUATERNION_MAX as f64 * std::f64::consts::SQRT_2;
 /// Step of a [`RelaxedRotation`] entry: 2⁻¹⁴ (rounding error ≤ 3.1e-5), range ±2.
 pub const RELAXED_ROTATION_STEP: f64 = 1.0 / 16384.0;
 /// Largest rotation error of a [`CompactPose`] (rad), see its documentation.
-pub const COMPACT_ROTATION_ERROR_RAD: f64 = 1.0e-4;
+pub const COMPACT_ROTATION_ERROR_RAD: f64 = 1.0e-6;
 
-/// A separator pose estimate as the distributed back-end sends it: translation in
-/// millimetres (three zigzag varints: 2–3 bytes each within 65 m / 8 km of the origin) and
-/// the rotation as a unit quaternion in "smallest three" form — which component is the
-/// largest in magnitude (one byte, 0–3 for x, y, z, w; its sign made positive, as q and -q
-/// are one rotation) and the other three in i16 steps of 1/46341 (the largest is rebuilt as
+/// A separator pose estimate as the distributed back-end sends it (and the relative pose of
+/// a condensed graph's edge): translation in steps of 0.1 mm (three zigzag varints: 3 bytes
+/// each within ±104 m of the origin, 4 within ±13 km) and the rotation as a unit quaternion
+/// in "smallest three" form — which component is the largest in magnitude (one byte, 0–3
+/// for x, y, z, w; its sign made positive, as q and -q are one rotation) and the other
+/// three as 24-bit integers in steps of 1/11863282 (the largest is rebuilt as
 /// √(1 − Σ others²) ≥ ½, so rounding is never amplified, unlike dropping w when w ≈ 0):
-/// 10–16 bytes instead of [`Pose`]'s 28.
+/// 13–25 bytes (19 for a pose within 104 m) instead of [`Pose`]'s 28.
 ///
-/// The error is bounded and stated: ≤ 0.5 mm per translation axis and
-/// ≤ [`COMPACT_ROTATION_ERROR_RAD`] (0.006°) of rotation — orders of magnitude below
-/// odometry and loop-closure noise and below the back-end's stopping thresholds, so the
-/// optimum each robot reaches from quantized neighbour estimates is the one it reaches
-/// from exact ones (tested by the distributed back-end).
+/// The error is bounded and stated: ≤ 0.05 mm per translation axis and
+/// ≤ [`COMPACT_ROTATION_ERROR_RAD`] (1 µrad) of rotation. Why this fine: the distributed
+/// back-end's separators and condensed edges are solved against information of up to
+/// ~3·10⁵ rad⁻² (KITTI 00's odometry), where the former 1 mm / 1e-4 rad steps alone cost
+/// 0.015 % of the team's χ² (BENCHMARKS.md, "Distributed pose-graph optimization"), more
+/// than the 1e-4 the back-end must stay within; these steps cost below 1e-6 of it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CompactPose {
-    translation_mm: [i64; 3],
+    translation_steps: [i64; 3],
     largest: u8,
-    rest: [i16; 3],
+    rest: [i32; 3],
     se3: SE3,
 }
 
@@ -564,8 +569,8 @@ impl CompactPose {
     /// component is beyond ±[`MAX_COMPACT_TRANSLATION_M`].
     pub fn quantize(p: &SE3) -> Result<Self, QuantizeError> {
         let t = p.translation.vector;
-        let mut translation_mm = [0i64; 3];
-        for (k, v) in translation_mm.iter_mut().enumerate() {
+        let mut translation_steps = [0i64; 3];
+        for (k, v) in translation_steps.iter_mut().enumerate() {
             let x = t[k];
             if !x.is_finite() {
                 return Err(QuantizeError::NonFinite {
@@ -596,13 +601,14 @@ impl CompactPose {
             .max_by(|&a, &b| q[a].abs().total_cmp(&q[b].abs()))
             .unwrap_or(3);
         let sign = q[largest].signum() / n;
-        let mut rest = [0i16; 3];
+        let limit = f64::from(COMPACT_QUATERNION_MAX);
+        let mut rest = [0i32; 3];
         for (slot, k) in rest.iter_mut().zip((0..4).filter(|&k| k != largest)) {
             *slot = (q[k] * sign * COMPACT_QUATERNION_STEPS)
                 .round()
-                .clamp(-32767.0, 32767.0) as i16;
+                .clamp(-limit, limit) as i32;
         }
-        Self::from_parts(translation_mm, largest as u8, rest).map_err(|_| {
+        Self::from_parts(translation_steps, largest as u8, rest).map_err(|_| {
             QuantizeError::OutOfRange {
                 field: "estimate rotation",
                 value: n,
@@ -614,16 +620,19 @@ impl CompactPose {
 
     /// From the wire integers; refused if the largest component's index is above 3.
     pub fn from_parts(
-        translation_mm: [i64; 3],
+        translation_steps: [i64; 3],
         largest: u8,
-        rest: [i16; 3],
+        rest: [i32; 3],
     ) -> Result<Self, &'static str> {
         let limit = (MAX_COMPACT_TRANSLATION_M / COMPACT_TRANSLATION_STEP_M) as i64;
-        if translation_mm.iter().any(|t| t.abs() > limit) {
+        if translation_steps.iter().any(|t| t.abs() > limit) {
             return Err("translation beyond 1,000 km");
         }
         if largest > 3 {
             return Err("largest quaternion component index above 3");
+        }
+        if rest.iter().any(|c| c.abs() > COMPACT_QUATERNION_MAX) {
+            return Err("quaternion component beyond 24 bits");
         }
         let others = rest.map(|c| f64::from(c) / COMPACT_QUATERNION_STEPS);
         let norm2: f64 = others.iter().map(|v| v * v).sum();
@@ -641,21 +650,21 @@ impl CompactPose {
                 it.next().copied().unwrap_or(0.0)
             };
         }
-        let t = translation_mm.map(|x| x as f64 * COMPACT_TRANSLATION_STEP_M);
+        let t = translation_steps.map(|x| x as f64 * COMPACT_TRANSLATION_STEP_M);
         let se3 = pose_from_array(&[t[0], t[1], t[2], q[0], q[1], q[2], q[3]])
             .map_err(|_| "not a pose")?;
         Ok(Self {
-            translation_mm,
+            translation_steps,
             largest,
             rest,
             se3,
         })
     }
 
-    /// The integers that travel: translation in mm, index of the largest quaternion
-    /// component, the other three in 1/46341.
-    pub fn parts(&self) -> ([i64; 3], u8, [i16; 3]) {
-        (self.translation_mm, self.largest, self.rest)
+    /// The integers that travel: translation in 0.1 mm, index of the largest quaternion
+    /// component, the other three in 1/11863282.
+    pub fn parts(&self) -> ([i64; 3], u8, [i32; 3]) {
+        (self.translation_steps, self.largest, self.rest)
     }
 
     /// The pose as the receiver uses it.
@@ -664,12 +673,16 @@ impl CompactPose {
     }
 
     pub(crate) fn write(&self, s: &mut impl Sink) {
-        for t in self.translation_mm {
+        for t in self.translation_steps {
             s.zigzag(t);
         }
         s.u8(self.largest);
         for c in self.rest {
-            s.u16(c as u16);
+            // 24-bit two's complement, little-endian.
+            let b = (c as u32).to_le_bytes();
+            s.u8(b[0]);
+            s.u8(b[1]);
+            s.u8(b[2]);
         }
     }
 
@@ -680,16 +693,18 @@ impl CompactPose {
             *v = r.zigzag(field)?;
         }
         let largest = r.u8(field)?;
-        let mut q = [0i16; 3];
+        let mut q = [0i32; 3];
         for c in &mut q {
-            *c = r.u16(field)? as i16;
+            let b = [r.u8(field)?, r.u8(field)?, r.u8(field)?];
+            // Sign-extend bit 23.
+            *c = (i32::from_le_bytes([b[0], b[1], b[2], 0]) << 8) >> 8;
         }
         Self::from_parts(t, largest, q).map_err(|e| WireError::invalid(field, offset, e))
     }
 }
 
-/// Fewest bytes of a [`CompactPose`] on the wire (three one-byte varints and 7 bytes).
-pub const COMPACT_POSE_MIN_BYTES: usize = 3 + 7;
+/// Fewest bytes of a [`CompactPose`] on the wire (three one-byte varints and 10 bytes).
+pub const COMPACT_POSE_MIN_BYTES: usize = 3 + 10;
 
 /// A rotation of stage 1 of the distributed back-end (chordal relaxation): a 3×3 matrix
 /// that is only approximately orthogonal while the iterations run, so it travels whole,

@@ -9,23 +9,31 @@
 //! by a fraction of the remaining error (BENCHMARKS.md measures it). Condensing removes the
 //! iteration instead of accelerating it.
 //!
-//! Condensing a chain is exact to first order: between two consecutive separators the
-//! odometry composes into one relative pose, and its covariance compounds as
-//! `Σ₁₂ = Ad(z₂⁻¹) Σ₁ Ad(z₂⁻¹)ᵀ + Σ₂` (right-perturbation convention of the back-end's
-//! residual). Intra-robot loop closures travel as they are (their ends become separators);
-//! an inter-robot closure travels in the graph of the lower of its two robots, once.
+//! Condensing is exact where it is made and iterated to the joint optimum: a robot's
+//! trajectory between two consecutive separators is a chain whose cost depends only on
+//! the separators' relative pose; with its interior solved given the separators
+//! ([`solve_interior`]), the chain's Gauss-Newton system with every interior pose
+//! eliminated (the Schur complement, all its edges, parallel ones included) is one
+//! quadratic in that relative pose, sent as the between-factor with the same gradient and
+//! Hessian there ([`condense`]). Where the team's solution moves the separators, the robot
+//! solves its interior again and condenses there; a segment travels again only when the
+//! factor the team holds would cost more than a small fraction of the χ²
+//! ([`model_change`]). At a fixed point the interior's gradient is zero and the separators'
+//! is that of the whole problem: the centralized optimum. Intra-robot loop closures travel
+//! as they are (their ends become separators); an inter-robot closure travels in the graph
+//! of the lower of its two robots, once.
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use doorslam_geometry::information::{covariance_from_information, information_from_covariance};
-use doorslam_geometry::{key, LieGroup, TangentMatrix, SE3};
+use doorslam_geometry::{key, reverse_measurement, LieGroup, Tangent, TangentMatrix, SE3};
 
 use super::local::{prior_through, OwnClosure, OwnEdge};
 use super::DpgoError;
-use crate::graph::PoseGraph;
+use crate::graph::{between_linearized, PoseGraph};
 use crate::init::Chordal;
 use crate::outliers::{Pcm, Scope};
-use crate::solver::{optimize, SolverOptions};
+use crate::solver::{optimize, SolverOptions, Summary};
+use doorslam_ipc::wire::{CompactPose, Information};
 
 /// A relative-pose constraint of a condensed graph: `z ≈ X_a⁻¹ X_b`, rotation-first
 /// information.
@@ -62,100 +70,217 @@ pub(crate) fn separators(
     s
 }
 
-/// The odometry edge from pose `p` to `p + 1`, oriented forward.
-fn forward(edges: &[OwnEdge], p: usize) -> Option<(SE3, TangentMatrix)> {
-    edges.iter().find_map(|e| {
-        if e.i == p && e.j == p + 1 {
-            Some((e.z, e.information))
-        } else if e.j == p && e.i == p + 1 {
-            // Reversed: z' = z⁻¹, Ω' = Ad(z)ᵀ... as in the agent's closure reversal.
-            let ad = e.z.inverse().adjoint();
-            let info = ad.transpose() * e.information * ad;
-            Some((e.z.inverse(), (info + info.transpose()) * 0.5))
-        } else {
-            None
-        }
+/// The edges between poses `p` and `p + 1` (odometry and any parallel edge).
+fn chain_edges(edges: &[OwnEdge], n_poses: usize) -> Vec<Vec<&OwnEdge>> {
+    let mut out: Vec<Vec<&OwnEdge>> = vec![Vec::new(); n_poses];
+    for e in edges.iter().filter(|e| e.i.abs_diff(e.j) == 1) {
+        out[e.i.min(e.j)].push(e);
+    }
+    out
+}
+
+/// `z`, `Ω` of edge `e` seen from pose `from` (exact: reversing a between-factor keeps its
+/// cost, see [`reverse_measurement`]).
+fn oriented(e: &OwnEdge, from: usize) -> (SE3, TangentMatrix) {
+    if e.i == from {
+        (e.z, e.information)
+    } else {
+        reverse_measurement(&e.z, &e.information)
+    }
+}
+
+/// The Gauss-Newton model of one chain segment on the perturbation `ε` of its end
+/// (`X_t Exp(ε)`, the start held where it is): `χ²(ε) ≈ c + 2 gᵀ ε + εᵀ H ε`, with every
+/// interior pose eliminated (Schur complement, one step at a time along the chain).
+#[derive(Debug, Clone)]
+pub(crate) struct SegmentModel {
+    h: TangentMatrix,
+    g: Tangent,
+}
+
+/// One edge of a condensed graph, and for a condensed chain segment the model it matches.
+#[derive(Debug, Clone)]
+pub(crate) struct Condensed {
+    pub edge: CondensedEdge,
+    pub model: Option<SegmentModel>,
+}
+
+/// The χ² a held factor `held` of a segment could cost against the segment's model `m` at
+/// the relative pose `t_bar`: with `Δ` the difference of their gradients there, `ΔᵀH⁻¹Δ`
+/// (what the solve's step is off by, in χ² units). Zero for the factor made from `m`.
+pub(crate) fn model_change(held: &CondensedEdge, t_bar: &SE3, m: &SegmentModel) -> f64 {
+    let r = held.z.inverse().compose(t_bar).log();
+    let g = SE3::right_jacobian_inv(&r).transpose() * held.information * r;
+    let d = g - m.g;
+    match m.h.cholesky() {
+        Some(c) => d.dot(&c.solve(&d)),
+        None => f64::INFINITY,
+    }
+}
+
+/// `e` as it travels (and as every robot holding it sees it): pose and information
+/// rounded to the wire's steps.
+pub(crate) fn quantized(origin: u8, e: &CondensedEdge) -> Result<CondensedEdge, DpgoError> {
+    let bad = |reason: String| DpgoError::BadMessage {
+        from: origin,
+        reason: format!("edge {} -> {}: {reason}", key::label(e.a), key::label(e.b)),
+    };
+    let z = *CompactPose::quantize(&e.z)
+        .map_err(|x| bad(x.to_string()))?
+        .se3();
+    let information = *Information::from_matrix(&e.information)
+        .map_err(|x| bad(x.to_string()))?
+        .matrix();
+    Ok(CondensedEdge {
+        a: e.a,
+        b: e.b,
+        z,
+        information,
     })
 }
 
-/// This robot's condensed graph (`keys[p]` names pose `p`).
+/// Eliminates the chain `s → s+1 → … → t` at the estimate `poses`: the edges between
+/// consecutive poses (all of them, parallel ones included) linearized where the poses are.
+fn segment_model(
+    poses: &[SE3],
+    chain: &[Vec<&OwnEdge>],
+    s: usize,
+    t: usize,
+) -> Option<SegmentModel> {
+    // The quadratic on the current end p, interior before it eliminated (None at s: fixed).
+    let mut model: Option<SegmentModel> = None;
+    for (p, steps) in chain.iter().enumerate().take(t).skip(s) {
+        let (mut a_pp, mut a_pq, mut a_qq) = (
+            TangentMatrix::zeros(),
+            TangentMatrix::zeros(),
+            TangentMatrix::zeros(),
+        );
+        let (mut b_p, mut b_q) = (Tangent::zeros(), Tangent::zeros());
+        for e in steps {
+            let (r, ji, jj) = between_linearized(&poses[e.i], &poses[e.j], &e.z);
+            let (jp, jq) = if e.i == p { (ji, jj) } else { (jj, ji) };
+            let om = e.information;
+            a_pp += jp.transpose() * om * jp;
+            a_pq += jp.transpose() * om * jq;
+            a_qq += jq.transpose() * om * jq;
+            b_p += jp.transpose() * om * r;
+            b_q += jq.transpose() * om * r;
+        }
+        model = Some(match model {
+            None => SegmentModel { h: a_qq, g: b_q },
+            Some(m) => {
+                // Eliminate δp: M = H_p + A_pp.
+                let chol = (m.h + a_pp).cholesky()?;
+                let m_inv_a = chol.solve(&a_pq);
+                let m_inv_b = chol.solve(&(m.g + b_p));
+                SegmentModel {
+                    h: a_qq - a_pq.transpose() * m_inv_a,
+                    g: b_q - a_pq.transpose() * m_inv_b,
+                }
+            }
+        });
+    }
+    model
+}
+
+/// The between-factor `(z, Ω)` with the same gradient and Gauss-Newton Hessian as `m` at
+/// the current relative pose `t_bar = X_s⁻¹ X_t`: with `μ = H⁻¹ g`, `z = T̄ Exp(−μ)` (the
+/// model's minimum) and `Ω = Jr(μ)ᵀ H Jr(μ)`. Its residual at `T̄` is `Log(z⁻¹ T̄) = μ`, its
+/// Jacobian `Jr⁻¹(μ)`, and `Jr⁻¹(μ) μ = μ`, so `JᵀΩr = H μ = g` and `JᵀΩJ = H` exactly.
+fn factor_of(t_bar: &SE3, m: &SegmentModel) -> Option<(SE3, TangentMatrix)> {
+    let chol = m.h.cholesky()?;
+    let mu = chol.solve(&m.g);
+    let z = t_bar.compose(&SE3::exp(&(-mu)));
+    let jr = SE3::right_jacobian(&mu);
+    let om = jr.transpose() * m.h * jr;
+    Some((z, (om + om.transpose()) * 0.5))
+}
+
+/// This robot's condensed graph at the estimate `poses` (`keys[p]` names pose `p`), whose
+/// interior must be at its optimum given the separators ([`solve_interior`]): per chain
+/// segment between consecutive separators, the between-factor matching the segment's
+/// Schur complement there ([`factor_of`]); a segment of one step keeps its edges as they are
+/// (exact); intra-robot loops as they are; inter-robot closures once, from the lower robot.
+///
+/// At the odometry's zero residual this is the classic compounding (`z` the composed
+/// odometry, `Ω` the compounded information). At any other estimate it is the segment's
+/// exact local model there, so a solve whose separators equal the estimate's is a
+/// stationary point of the whole problem (the interior's gradient is zero, the separators'
+/// is the condensed factors' plus the closures'): relinearized where the team's solution
+/// puts the separators, the condensed graphs iterate to the centralized optimum.
 pub(crate) fn condense(
     robot: u8,
     keys: &[u64],
+    poses: &[SE3],
     edges: &[OwnEdge],
     closures: &[OwnClosure],
-) -> Result<Vec<CondensedEdge>, DpgoError> {
+) -> Result<Vec<Condensed>, DpgoError> {
     let seps = separators(keys.len(), edges, closures);
-    let mut out = Vec::new();
-    let invert = |m: &TangentMatrix, what: u64| {
-        covariance_from_information(m, 6).map_err(|source| DpgoError::Information {
-            from: key::label(what),
-            to: key::label(what),
-            source,
-        })
+    let chain = chain_edges(edges, keys.len());
+    let singular = |s: usize, t: usize| DpgoError::Information {
+        from: key::label(keys[s]),
+        to: key::label(keys[t]),
+        source: doorslam_geometry::information::InformationError::NotPositiveDefinite,
     };
-    // Compose along the chain from each separator to the next: (start, z, Σ, the step's
-    // own information while the chain is one step long).
-    type Chain = (usize, SE3, TangentMatrix, Option<TangentMatrix>);
-    let mut from: Option<Chain> = None;
-    for p in 0..keys.len() {
-        if seps.contains(&p) {
-            if let Some((s, z, cov, single)) = from.take() {
-                if s != p {
-                    // One step is the odometry edge itself: its information exactly (so
-                    // it repeats between edges, and the wire sends it once).
-                    let information = match single {
-                        Some(info) => info,
-                        None => {
-                            let i = information_from_covariance(&cov, 6).map_err(|source| {
-                                DpgoError::Information {
-                                    from: key::label(keys[s]),
-                                    to: key::label(keys[p]),
-                                    source,
-                                }
-                            })?;
-                            (i + i.transpose()) * 0.5
-                        }
-                    };
-                    out.push(CondensedEdge {
+    let mut out = Vec::new();
+    for &s in &seps {
+        // Follow the chain to the next separator; a chain that ends before one (a gap)
+        // leaves its poses hanging from s: they constrain no separator.
+        let mut t = s;
+        while t + 1 < keys.len() && !chain[t].is_empty() {
+            t += 1;
+            if seps.contains(&t) {
+                break;
+            }
+        }
+        if t == s || !seps.contains(&t) {
+            continue;
+        }
+        if t == s + 1 {
+            for e in &chain[s] {
+                let (z, information) = oriented(e, s);
+                out.push(Condensed {
+                    edge: CondensedEdge {
                         a: keys[s],
-                        b: keys[p],
+                        b: keys[t],
                         z,
                         information,
-                    });
-                }
+                    },
+                    model: None,
+                });
             }
-            from = Some((p, SE3::identity(), TangentMatrix::zeros(), None));
+            continue;
         }
-        // Extend to p + 1 if the chain continues.
-        match (from.take(), forward(edges, p)) {
-            (Some((s, z, cov, _)), Some((step, info))) => {
-                let ad = step.inverse().adjoint();
-                let cov = ad * cov * ad.transpose() + invert(&info, keys[p])?;
-                let single = (s == p).then_some(info);
-                from = Some((s, z.compose(&step), cov, single));
-            }
-            _ => from = None,
-        }
+        let model = segment_model(poses, &chain, s, t).ok_or_else(|| singular(s, t))?;
+        let t_bar = poses[s].inverse().compose(&poses[t]);
+        let (z, information) = factor_of(&t_bar, &model).ok_or_else(|| singular(s, t))?;
+        out.push(Condensed {
+            edge: CondensedEdge {
+                a: keys[s],
+                b: keys[t],
+                z,
+                information,
+            },
+            model: Some(model),
+        });
     }
     // Intra-robot loops as they are.
+    let exact = |a: u64, b: u64, z: SE3, information: TangentMatrix| Condensed {
+        edge: CondensedEdge {
+            a,
+            b,
+            z,
+            information,
+        },
+        model: None,
+    };
     for e in edges.iter().filter(|e| e.i.abs_diff(e.j) != 1) {
-        out.push(CondensedEdge {
-            a: keys[e.i],
-            b: keys[e.j],
-            z: e.z,
-            information: e.information,
-        });
+        out.push(exact(keys[e.i], keys[e.j], e.z, e.information));
     }
     // Closures, once: from the lower robot.
     for c in closures {
         if key::robot(c.other).is_some_and(|o| robot < o) {
-            out.push(CondensedEdge {
-                a: keys[c.own],
-                b: c.other,
-                z: c.z,
-                information: c.information,
-            });
+            out.push(exact(keys[c.own], c.other, c.z, c.information));
         }
     }
     Ok(out)
@@ -232,18 +357,30 @@ pub(crate) fn pcm_inliers(
         .collect())
 }
 
+/// What a solve of the separator graph gives.
+#[derive(Debug, Clone)]
+pub(crate) struct SeparatorSolve {
+    /// Separator estimates of the connected part, in its frame.
+    pub estimates: BTreeMap<u64, SE3>,
+    /// Inter-robot closures (key, key) PCM rejected.
+    pub rejected: Vec<(u64, u64)>,
+    /// Per separator, the Gauss-Newton Hessian block of its own perturbation at the
+    /// solution (Σ JᵀΩJ over the edges that touch it): moving it alone by `δ` costs
+    /// `δᵀ D δ` of χ², which decides whether a change is worth sending.
+    pub stiffness: BTreeMap<u64, TangentMatrix>,
+    /// The solver's summary (`None`: nothing to solve, one pose).
+    pub summary: Option<Summary>,
+}
+
 /// Solves the separator graph of the team `graphs` (origin → edges) that contains pose
 /// `mine`: chordal initialization and Levenberg-Marquardt with the lowest key of that
 /// connected part (the lowest robot's first pose) fixed at the identity — the team frame.
-/// Separator estimates, and the closures (key, key) PCM rejected.
-pub(crate) type Solved = (BTreeMap<u64, SE3>, Vec<(u64, u64)>);
-
-/// Returns the separator estimates and the closures PCM rejected.
 pub(crate) fn solve_separators(
     graphs: &BTreeMap<u8, &[CondensedEdge]>,
     mine: u64,
     pcm: Option<PcmSettings>,
-) -> Result<Solved, DpgoError> {
+    options: &SolverOptions,
+) -> Result<SeparatorSolve, DpgoError> {
     let mut g = PoseGraph::<SE3>::new();
     let inliers = pcm.map(|p| pcm_inliers(graphs, p)).transpose()?;
     let inter = |e: &CondensedEdge| key::robot(e.a) != key::robot(e.b);
@@ -278,18 +415,31 @@ pub(crate) fn solve_separators(
     let start = g.index_of(mine).unwrap_or_default();
     let mut part = reachable_part(&g, start)?;
     let anchor = 0; // keys were added in ascending order: the lowest robot's first pose.
+    let mut summary = None;
     if part.len() > 1 {
         SE3::chordal(&mut part, anchor)?;
-        optimize(&mut part, anchor, &SolverOptions::default())?;
+        summary = Some(optimize(&mut part, anchor, options)?);
     }
-    Ok((
-        part.keys()
+    let mut stiffness: BTreeMap<u64, TangentMatrix> = BTreeMap::new();
+    for e in part.edges() {
+        let (_, ji, jj) = between_linearized(&part.poses()[e.i], &part.poses()[e.j], &e.measured);
+        for (p, j) in [(e.i, ji), (e.j, jj)] {
+            *stiffness
+                .entry(part.keys()[p])
+                .or_insert_with(TangentMatrix::zeros) += j.transpose() * e.information * j;
+        }
+    }
+    Ok(SeparatorSolve {
+        estimates: part
+            .keys()
             .iter()
             .copied()
             .zip(part.poses().iter().copied())
             .collect(),
         rejected,
-    ))
+        stiffness,
+        summary,
+    })
 }
 
 /// The poses of `g` connected to pose `start` (same order, same values) and their edges.
@@ -386,4 +536,157 @@ pub(crate) fn check_graph(origin: u8, edges: &[CondensedEdge]) -> Result<(), Str
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::DMatrix;
+
+    fn pose(v: [f64; 6]) -> SE3 {
+        SE3::exp(&Tangent::from_row_slice(&v))
+    }
+
+    fn info(scale: f64) -> TangentMatrix {
+        let mut m = TangentMatrix::identity() * 400.0 * scale;
+        for k in 3..6 {
+            m[(k, k)] = 25.0 * scale;
+        }
+        m[(0, 4)] = 3.0;
+        m[(4, 0)] = 3.0;
+        m
+    }
+
+    fn edge(i: usize, j: usize, z: SE3, information: TangentMatrix) -> OwnEdge {
+        OwnEdge {
+            i,
+            j,
+            z,
+            information,
+            kappa: 1.0,
+            tau: 1.0,
+        }
+    }
+
+    /// A chain 0 → 1 → 2 → 3 → 4 with a parallel edge 1 → 2 and a reversed step 3 ← 4,
+    /// and an estimate away from the odometry's zero residual (as after a team solve).
+    fn chain() -> (Vec<SE3>, Vec<OwnEdge>) {
+        let step = pose([0.02, -0.01, 0.1, 1.0, 0.1, 0.0]);
+        let mut edges: Vec<OwnEdge> = (0..3).map(|i| edge(i, i + 1, step, info(1.0))).collect();
+        edges.push(edge(
+            1,
+            2,
+            pose([0.03, 0.0, 0.12, 1.1, 0.0, 0.05]),
+            info(0.5),
+        ));
+        edges.push(edge(4, 3, step.inverse(), info(2.0)));
+        let poses = (0..5)
+            .map(|i| {
+                let f = i as f64;
+                pose([0.01 * f, 0.02 * f, 0.13 * f, 1.1 * f, 0.3 * f, -0.1 * f])
+            })
+            .collect();
+        (poses, edges)
+    }
+
+    /// The Schur complement of the interior from the whole chain's dense normal equations
+    /// (pose 0 fixed, variables 1..=4, pose 4's block kept).
+    fn dense_schur(poses: &[SE3], edges: &[OwnEdge]) -> (TangentMatrix, Tangent) {
+        let n = 4 * 6;
+        let mut h = DMatrix::<f64>::zeros(n, n);
+        let mut g = DMatrix::<f64>::zeros(n, 1);
+        for e in edges {
+            let (r, ji, jj) = between_linearized(&poses[e.i], &poses[e.j], &e.z);
+            for (a, ja) in [(e.i, ji), (e.j, jj)] {
+                if a == 0 {
+                    continue;
+                }
+                let ga = ja.transpose() * e.information * r;
+                for k in 0..6 {
+                    g[(6 * (a - 1) + k, 0)] += ga[k];
+                }
+                for (b, jb) in [(e.i, ji), (e.j, jj)] {
+                    if b == 0 {
+                        continue;
+                    }
+                    let block = ja.transpose() * e.information * jb;
+                    for r in 0..6 {
+                        for c in 0..6 {
+                            h[(6 * (a - 1) + r, 6 * (b - 1) + c)] += block[(r, c)];
+                        }
+                    }
+                }
+            }
+        }
+        let (ii, tt) = (0..18, 18..24);
+        let h_ii = h.view((ii.start, ii.start), (18, 18)).into_owned();
+        let h_it = h.view((ii.start, tt.start), (18, 6)).into_owned();
+        let h_tt = h.view((tt.start, tt.start), (6, 6)).into_owned();
+        let inv = h_ii.cholesky().unwrap().inverse();
+        let s = &h_tt - h_it.transpose() * &inv * &h_it;
+        let gs = g.rows(18, 6).into_owned() - h_it.transpose() * &inv * g.rows(0, 18);
+        (
+            TangentMatrix::from_fn(|r, c| s[(r, c)]),
+            Tangent::from_fn(|r, _| gs[(r, 0)]),
+        )
+    }
+
+    #[test]
+    fn a_segment_model_is_the_schur_complement_of_every_edge() {
+        let (poses, edges) = chain();
+        let m = segment_model(&poses, &chain_edges(&edges, 5), 0, 4).unwrap();
+        let (h, g) = dense_schur(&poses, &edges);
+        assert!((m.h - h).amax() <= 1e-9 * h.amax(), "{}\n{h}", m.h);
+        assert!((m.g - g).amax() <= 1e-9 * g.amax().max(1.0), "{}\n{g}", m.g);
+        // Dropping the parallel edge changes it: every edge counts.
+        let fewer: Vec<OwnEdge> = edges
+            .iter()
+            .enumerate()
+            .filter(|(n, _)| *n != 3)
+            .map(|(_, e)| e.clone())
+            .collect();
+        let m2 = segment_model(&poses, &chain_edges(&fewer, 5), 0, 4).unwrap();
+        assert!((m2.h - h).amax() > 1e-3 * h.amax());
+    }
+
+    /// The between-factor of a model has the model's gradient and Gauss-Newton Hessian at
+    /// the relative pose it was made at.
+    #[test]
+    fn the_condensed_factor_matches_the_model_where_it_was_made() {
+        let (poses, edges) = chain();
+        let m = segment_model(&poses, &chain_edges(&edges, 5), 0, 4).unwrap();
+        assert!(
+            m.g.norm() > 1.0,
+            "the estimate is away from the zero residual"
+        );
+        let t_bar = poses[0].inverse().compose(&poses[4]);
+        let (z, om) = factor_of(&t_bar, &m).unwrap();
+        let (r, _, jj) = between_linearized(&SE3::identity(), &t_bar, &z);
+        let g = jj.transpose() * om * r;
+        let h = jj.transpose() * om * jj;
+        assert!((g - m.g).amax() <= 1e-8 * m.g.amax(), "{g} vs {}", m.g);
+        assert!((h - m.h).amax() <= 1e-8 * m.h.amax());
+        let held = CondensedEdge {
+            a: 0,
+            b: 4,
+            z,
+            information: om,
+        };
+        assert!(model_change(&held, &t_bar, &m) <= 1e-12);
+        // At the odometry (zero residual) it is the classic compounding: z the composition.
+        let mut odo = vec![SE3::identity()];
+        for e in &edges[..3] {
+            odo.push(odo.last().unwrap().compose(&e.z));
+        }
+        odo.push(odo[3].compose(&edges[4].z.inverse()));
+        let single: Vec<OwnEdge> = edges
+            .iter()
+            .enumerate()
+            .filter(|(n, _)| *n != 3)
+            .map(|(_, e)| e.clone())
+            .collect();
+        let m0 = segment_model(&odo, &chain_edges(&single, 5), 0, 4).unwrap();
+        let (z0, _) = factor_of(&odo[4], &m0).unwrap();
+        assert!(z0.inverse().compose(&odo[4]).log().norm() < 1e-9);
+    }
 }

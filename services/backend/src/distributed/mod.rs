@@ -151,6 +151,17 @@ pub struct AgentOptions {
     /// PCM on the team's inter-robot closures before each solve (condensed method; no
     /// extra messages), or none (closures were checked before).
     pub pcm: Option<condensed::PcmSettings>,
+    /// Condensed method: a chain segment is condensed again and sent when the model the
+    /// team holds would cost more χ² at the current estimate (`condensed::model_change`)
+    /// than this fraction of the robot's own χ² per segment.
+    pub relinearize_fraction: f64,
+    /// Condensed method: the solver sends a separator's new estimate when keeping the old
+    /// one would cost more χ² than this fraction of the solve's χ² per separator (see
+    /// `team::estimates_due`).
+    pub send_fraction: f64,
+    /// The solver of the separator graph (condensed method): its iteration limit and
+    /// tolerances; its summary is [`Agent::last_solve`].
+    pub solver: SolverOptions,
     /// Condensed method: send a neighbour that holds an older version of a graph only the
     /// key pairs that changed (false: always the whole graph, to measure the difference).
     pub graph_updates: bool,
@@ -187,6 +198,12 @@ impl Default for AgentOptions {
             method: Method::default(),
             pcm: None,
             graph_updates: true,
+            // Each leaves out changes worth at most this fraction of the χ² in total (per
+            // segment / separator times their count): 1e-5, ten times below the 1e-4 the
+            // distributed estimate must stay within.
+            relinearize_fraction: 1e-5,
+            send_fraction: 1e-5,
+            solver: SolverOptions::default(),
         }
     }
 }
@@ -559,6 +576,12 @@ impl Agent {
     /// method with PCM in the loop).
     pub fn rejected_closures(&self) -> &[(u64, u64)] {
         &self.rejected
+    }
+
+    /// The summary of the last solve of the team's separator graph this robot ran (the
+    /// condensed method's solver), `None` if it never solved one.
+    pub fn last_solve(&self) -> Option<&crate::solver::Summary> {
+        self.team.last_solve.as_ref()
     }
 
     /// The robot's poses, in the team's frame once [`Self::anchored`].

@@ -101,7 +101,15 @@ pub struct RunReport {
     /// RMSE (m) between each pose's distributed and centralized translation.
     pub ate_to_centralized: f64,
     pub time_s: f64,
+    /// Every robot settled within `max_rounds` and the team's solver met its convergence
+    /// test (`stop_reason`).
     pub converged: bool,
+    /// Why the team's solver stopped its last solve (`Summary::stop_reason`, e.g.
+    /// `converged_small_decrease`, `max_iterations`); DGS: `dgs_converged` or
+    /// `dgs_max_rounds` (its stages stop on their change thresholds).
+    pub stop_reason: String,
+    /// Every robot settled (nothing in flight, nothing due) before `max_rounds`.
+    pub settled: bool,
     pub dropped: u64,
     pub resent: u64,
     pub refused: u64,
@@ -641,6 +649,25 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
         }
     }
     let distributed_chi2 = distributed.chi2();
+    let (stop_reason, solver_converged) = match options.agent.method {
+        super::Method::Dgs => (
+            if converged {
+                "dgs_converged"
+            } else {
+                "dgs_max_rounds"
+            }
+            .to_string(),
+            true,
+        ),
+        super::Method::Condensed => match agents
+            .values()
+            .find(|a| a.solves_team())
+            .and_then(|a| a.last_solve())
+        {
+            Some(s) => (s.stop_reason.as_str().to_string(), s.converged),
+            None => ("no_solve".to_string(), false),
+        },
+    };
     let stats: Vec<_> = agents.values().map(|a| a.stats()).collect();
     let separators = {
         let mut s: Vec<u64> = closures.iter().flat_map(|c| [c.0, c.1]).collect();
@@ -674,7 +701,9 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
         chi2_gap: (distributed_chi2 - centralized_chi2) / centralized_chi2.max(f64::MIN_POSITIVE),
         ate_to_centralized: (sq / poses.max(1) as f64).sqrt(),
         time_s: start.elapsed().as_secs_f64(),
-        converged,
+        converged: converged && solver_converged,
+        stop_reason,
+        settled: converged,
         dropped,
         resent: stats.iter().map(|s| s.resent).sum(),
         refused: refused + stats.iter().map(|s| s.refused).sum::<u64>(),

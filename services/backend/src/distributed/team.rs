@@ -35,7 +35,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
-use doorslam_geometry::{key, SE3};
+use doorslam_geometry::{key, LieGroup, SE3};
 use doorslam_ipc::wire::{
     Ack, Body, CompactPose, Estimate, GraphEdge, Header, Information, Kind, Message, PoseEstimate,
     PoseEstimates, Route, SeparatorGraph, Stage, MAX_GRAPH_EDGES, MAX_POSE_ESTIMATES,
@@ -43,7 +43,11 @@ use doorslam_ipc::wire::{
 
 use super::condensed::{self, CondensedEdge};
 use super::link::{Arrival, Outbox, Received};
-use super::{pose_distance, Agent, DpgoError};
+use super::{Agent, DpgoError};
+
+/// The smallest χ² threshold of relinearizing and sending (a team whose χ² is zero would
+/// otherwise resend rounding noise).
+const MIN_CHI2: f64 = 1e-12;
 
 /// A condensed graph as held: its version and edges (shared, never copied).
 #[derive(Debug, Clone)]
@@ -103,6 +107,12 @@ pub(crate) struct TeamState {
     pub solutions: BTreeMap<u8, Solution>,
     /// The own interior must be solved again (new poses, edges or separators).
     pub interior_dirty: bool,
+    /// The condensed chain segments of the own graph as the team holds them (quantized).
+    pub own_segments: BTreeMap<(u64, u64), CondensedEdge>,
+    /// Solver: each separator's stiffness at the last solution (see
+    /// `condensed::SeparatorSolve`), and that solve's summary.
+    pub stiffness: BTreeMap<u64, doorslam_geometry::TangentMatrix>,
+    pub last_solve: Option<crate::solver::Summary>,
 }
 
 /// What a robot knows of one neighbour for the condensed method.
@@ -384,25 +394,7 @@ impl Agent {
             return Ok(false);
         }
         if self.own_graph_dirty {
-            let edges = condensed::condense(self.robot, &self.keys, &self.edges, &self.closures)?;
-            let changed = self
-                .team
-                .graphs
-                .get(&self.robot)
-                .is_none_or(|h| *h.edges != edges);
-            if changed {
-                self.team.fresh = true;
-                self.team.own_counter += 1;
-                let version = self.own_version();
-                self.team.graphs.insert(
-                    self.robot,
-                    Held {
-                        version,
-                        edges: Arc::new(edges),
-                    },
-                );
-            }
-            self.own_graph_dirty = false;
+            self.relinearize()?;
         }
         let path = self.best_path();
         if path != self.team.path {
@@ -427,7 +419,7 @@ impl Agent {
             solved = self.solve_team()?;
         }
         if self.team.interior_dirty {
-            self.solve_own_interior()?;
+            self.relinearize()?;
             solved = true;
         }
         if solved {
@@ -476,10 +468,27 @@ impl Agent {
             .iter()
             .map(|(o, h)| (*o, h.edges.as_slice()))
             .collect();
-        let (separators, rejected) =
-            condensed::solve_separators(&graphs, self.keys[0], self.options.pcm)?;
-        self.stats.rejected_closures = rejected.len() as u64;
-        self.rejected = rejected;
+        let solve = condensed::solve_separators(
+            &graphs,
+            self.keys[0],
+            self.options.pcm,
+            &self.options.solver,
+        )?;
+        self.stats.rejected_closures = solve.rejected.len() as u64;
+        self.rejected = solve.rejected;
+        self.team.stiffness = solve.stiffness;
+        if let Some(summary) = solve.summary {
+            self.team.last_solve = Some(summary);
+        }
+        // What travels is what every robot holds: the solution rounded to the wire's steps.
+        let mut separators = BTreeMap::new();
+        for (k, x) in solve.estimates {
+            let q = CompactPose::quantize(&x).map_err(|source| DpgoError::Quantize {
+                key: key::label(k),
+                source,
+            })?;
+            separators.insert(k, *q.se3());
+        }
         // The team frame is the lowest robot's first pose at the identity.
         let anchor = separators
             .keys()
@@ -539,35 +548,111 @@ impl Agent {
             })
     }
 
-    /// The own poses with the own separators fixed at their team estimates.
-    fn solve_own_interior(&mut self) -> Result<(), DpgoError> {
-        self.team.interior_dirty = false;
-        let Some(own) = self.team.solutions.get(&self.robot) else {
-            return Ok(());
-        };
-        // Only the separators of the current graph: a pose that stopped being one (a gap
-        // in the odometry closed) is interior again.
-        let current: BTreeSet<usize> =
-            condensed::separators(self.keys.len(), &self.edges, &self.closures);
-        let fixed: Vec<Option<SE3>> = self
-            .keys
-            .iter()
-            .enumerate()
-            .map(|(p, k)| {
+    /// Where the separators are now: at the team's solution for those it names; a separator
+    /// it does not name yet (it appeared since) moved rigidly with the nearest one it names
+    /// (the odometry between them kept), so the estimate is in one frame; before any
+    /// solution, where the robot's estimate has them.
+    fn separator_values(&self, current: &BTreeSet<usize>) -> Vec<Option<SE3>> {
+        let solved: BTreeMap<usize, SE3> = self
+            .team
+            .solutions
+            .get(&self.robot)
+            .map(|s| {
                 current
-                    .contains(&p)
-                    .then(|| own.separators.get(k).copied())
-                    .flatten()
+                    .iter()
+                    .filter_map(|&p| Some((p, *s.separators.get(&self.keys[p])?)))
+                    .collect()
             })
-            .collect();
-        if fixed.iter().all(Option::is_none) {
-            return Ok(());
+            .unwrap_or_default();
+        (0..self.keys.len())
+            .map(|p| {
+                if !current.contains(&p) {
+                    return None;
+                }
+                if let Some(x) = solved.get(&p) {
+                    return Some(*x);
+                }
+                let nearest = solved.keys().min_by_key(|q| q.abs_diff(p));
+                Some(match nearest {
+                    Some(&q) => solved[&q]
+                        .compose(&self.poses[q].inverse())
+                        .compose(&self.poses[p]),
+                    None => self.poses[p],
+                })
+            })
+            .collect()
+    }
+
+    /// Solves the own interior with the separators where the team's solution puts them
+    /// ([`Self::separator_values`]), then condenses the trajectory at that estimate
+    /// ([`condensed::condense`]). A chain segment whose new model differs from the one the
+    /// team holds by less than `relinearize_fraction` (the χ² its gradient error could cost,
+    /// `ΔᵀH⁻¹Δ`, [`condensed::model_change`]) keeps the held factor, so only segments that
+    /// moved travel again; any change makes a new version of the graph.
+    fn relinearize(&mut self) -> Result<(), DpgoError> {
+        self.team.interior_dirty = false;
+        self.own_graph_dirty = false;
+        let current = condensed::separators(self.keys.len(), &self.edges, &self.closures);
+        let fixed = self.separator_values(&current);
+        let poses = condensed::solve_interior(&self.poses, &self.edges, &fixed)?;
+        let mut edges = Vec::new();
+        let mut segments = BTreeMap::new();
+        let condensed =
+            condensed::condense(self.robot, &self.keys, &poses, &self.edges, &self.closures)?;
+        let own_chi2: f64 = self
+            .edges
+            .iter()
+            .map(|e| {
+                let r = crate::graph::between_residual(&poses[e.i], &poses[e.j], &e.z);
+                r.dot(&(e.information * r))
+            })
+            .sum();
+        let n_segments = condensed
+            .iter()
+            .filter(|c| c.model.is_some())
+            .count()
+            .max(1);
+        let threshold =
+            (self.options.relinearize_fraction * own_chi2 / n_segments as f64).max(MIN_CHI2);
+        for c in condensed {
+            let new = condensed::quantized(self.robot, &c.edge)?;
+            let Some(model) = c.model else {
+                edges.push(new);
+                continue;
+            };
+            let held = self.team.own_segments.get(&(new.a, new.b));
+            let (ia, ib) = (self.index[&new.a], self.index[&new.b]);
+            let t_bar = poses[ia].inverse().compose(&poses[ib]);
+            let keep = held.filter(|h| condensed::model_change(h, &t_bar, &model) <= threshold);
+            let edge = keep.cloned().unwrap_or(new);
+            segments.insert((edge.a, edge.b), edge.clone());
+            edges.push(edge);
         }
-        self.poses = condensed::solve_interior(&self.poses, &self.edges, &fixed)?;
-        self.anchor = own.anchor;
-        self.anchored = true;
-        self.in_frame = vec![true; self.keys.len()];
+        self.team.own_segments = segments;
+        let changed = self
+            .team
+            .graphs
+            .get(&self.robot)
+            .is_none_or(|h| *h.edges != edges);
+        if changed {
+            self.team.fresh = true;
+            self.team.own_counter += 1;
+            let version = self.own_version();
+            self.team.graphs.insert(
+                self.robot,
+                Held {
+                    version,
+                    edges: Arc::new(edges),
+                },
+            );
+        }
+        self.poses = poses;
         self.estimate_version += 1;
+        if let Some(own) = self.team.solutions.get(&self.robot) {
+            self.anchor = own.anchor;
+            self.anchored = true;
+            self.in_frame = vec![true; self.keys.len()];
+        }
         Ok(())
     }
 
@@ -659,19 +744,33 @@ impl Agent {
         }
     }
 
-    /// Separators of `robot` the neighbour lacks or holds beyond `send_pose` (all of them
-    /// in another frame); the first alone when only the version is new.
+    /// Separators of `robot` the neighbour lacks or holds at another value (all of them in
+    /// another frame); the first alone when only the version is new. The solver leaves out
+    /// a change whose χ² is below `send_fraction` (moving that separator alone by `δ` from the
+    /// value held costs `δᵀ D δ`, `D` its stiffness in the solve): below it, the change
+    /// does not matter to the team's estimate. Relays forward what they got.
     fn estimates_due(&self, link: &TeamLink, robot: u8, s: &Solution) -> Vec<(u64, SE3)> {
         let view = link.estimates_view(robot);
+        let solver = self.root() == self.robot;
+        let threshold = self.team.last_solve.as_ref().map_or(MIN_CHI2, |s| {
+            let n = self.team.stiffness.len().max(1) as f64;
+            (self.options.send_fraction * s.final_chi2 / n).max(MIN_CHI2)
+        });
         match view {
             Some(v) if v.anchor == s.anchor => {
                 let due: Vec<(u64, SE3)> = s
                     .separators
                     .iter()
-                    .filter(|(k, x)| {
-                        v.separators
-                            .get(k)
-                            .is_none_or(|h| pose_distance(h, x) > self.options.send_pose)
+                    .filter(|(k, x)| match v.separators.get(k) {
+                        None => true,
+                        Some(h) if h == *x => false,
+                        Some(h) => {
+                            let stiffness = self.team.stiffness.get(k).filter(|_| solver);
+                            stiffness.is_none_or(|d| {
+                                let delta = h.inverse().compose(x).log();
+                                delta.dot(&(d * delta)) > threshold
+                            })
+                        }
                     })
                     .map(|(k, x)| (*k, *x))
                     .collect();
@@ -1112,11 +1211,16 @@ fn alone(
         BTreeMap::from([(first, SE3::identity())])
     } else {
         let graphs = BTreeMap::from([(r, own.as_slice())]);
-        condensed::solve_separators(&graphs, first, None)?
-            .0
-            .into_iter()
-            .filter(|(k, _)| key::robot(*k) == Some(r))
-            .collect()
+        condensed::solve_separators(
+            &graphs,
+            first,
+            None,
+            &crate::solver::SolverOptions::default(),
+        )?
+        .estimates
+        .into_iter()
+        .filter(|(k, _)| key::robot(*k) == Some(r))
+        .collect()
     };
     Ok(Some(Solution {
         anchor: r,

@@ -1,0 +1,68 @@
+//! The distributed back-end on teams with interior poses: DOOR-SLAM's KITTI 00 split made
+//! from the developer set's single-robot KITTI 00 graph (`doorslam sim split`), where each
+//! robot's 908 poses condense onto a few dozen separators. The condensed method must end
+//! at the centralized optimum there, not near it; and `converged` must come from the
+//! team's solver.
+//!
+//! Data: `shared/data/pose_graphs/dpgo/kitti_00.g2o` beside the repository (or
+//! `$DOORSLAM_DATA`).
+
+use std::path::PathBuf;
+
+use doorslam_backend::distributed::runner::{run, RunOptions, RunReport};
+use doorslam_backend::distributed::AgentOptions;
+use doorslam_backend::{read_g2o, PoseGraph, UnknownTags};
+use doorslam_geometry::SE3;
+use doorslam_hil::dpgo::split_into_team;
+
+fn data() -> PathBuf {
+    std::env::var_os("DOORSLAM_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"))
+}
+
+/// KITTI 00 (4541 poses, 136 loop closures across the blocks) as five robots.
+fn kitti_split() -> PoseGraph<SE3> {
+    let path = data().join("pose_graphs/dpgo/kitti_00.g2o");
+    let file =
+        read_g2o(&path, UnknownTags::Error).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    split_into_team(&file.graph, 5).unwrap()
+}
+
+fn play(agent: AgentOptions) -> RunReport {
+    let r = run(
+        &kitti_split(),
+        &RunOptions {
+            agent,
+            ..RunOptions::default()
+        },
+    )
+    .unwrap();
+    println!(
+        "converged {} ({}), rounds {}, χ² gap {:.3e}, ATE to centralized {:.4} m, bytes {} / {} centralized",
+        r.converged, r.stop_reason, r.iterations, r.chi2_gap, r.ate_to_centralized, r.bytes, r.bytes_centralized
+    );
+    r
+}
+
+/// Measured (2026-12-02): χ² gap 4.1e-6, ATE to the centralized estimate 2.3 mm, bytes
+/// 0.18 of centralized. Condensed once at the odometry (the scheme before), the same run
+/// ends 5.8e-5 above the optimum and 0.145 m from it: the bounds (5x and 4x the measured)
+/// fail without relinearizing.
+#[test]
+fn a_team_with_interior_poses_ends_at_the_centralized_optimum() {
+    let r = play(AgentOptions::default());
+    assert!(r.converged, "{}", r.stop_reason);
+    assert!(r.chi2_gap.abs() <= 2e-5, "χ² gap {:.3e}", r.chi2_gap);
+    assert!(r.ate_to_centralized <= 0.01, "ATE {}", r.ate_to_centralized);
+    assert!(r.bytes as f64 <= 0.25 * r.bytes_centralized as f64);
+}
+
+#[test]
+fn a_solver_stopped_on_its_iteration_limit_is_not_converged() {
+    let mut agent = AgentOptions::default();
+    agent.solver.max_iterations = 1;
+    let r = play(agent);
+    assert!(!r.converged);
+    assert_eq!(r.stop_reason, "max_iterations");
+}
