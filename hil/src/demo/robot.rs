@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 use crate::flights::robot_name;
 use crate::netns::Net;
 
+use super::cpu::CpuMeter;
 use super::{io_err, DemoError};
 
 /// Where a robot is.
@@ -79,6 +80,11 @@ impl Robot {
 
     pub fn name(&self) -> char {
         robot_name(self.index)
+    }
+
+    /// The process group of the running incarnation (`up`'s pid: it leads its group).
+    pub fn pgid(&self) -> Option<i32> {
+        self.child.as_ref().map(|c| c.id() as i32)
     }
 
     /// Starts `doorslam up` (in the robot's namespace when there is a network), in a
@@ -164,8 +170,9 @@ impl Robot {
     }
 
     /// SIGTERM to `up`, which stops the services in reverse start order (each drains its
-    /// queues and writes its files); SIGKILL to the group after `grace`.
-    pub fn stop(&mut self) -> Result<(), DemoError> {
+    /// queues and writes its files); SIGKILL to the group after `grace`. Once `up` has
+    /// exited, and before it is reaped, `meter` reads its exact CPU total.
+    pub fn stop(&mut self, meter: &mut CpuMeter) -> Result<(), DemoError> {
         let grace = Duration::from_secs(20);
         if let Some(mut child) = self.child.take() {
             let pid = child.id() as i32;
@@ -173,6 +180,11 @@ impl Robot {
             unsafe { libc::kill(pid, libc::SIGTERM) };
             let deadline = Instant::now() + grace;
             loop {
+                if exited_unreaped(pid) {
+                    meter.exited(self.index, pid);
+                    let _ = child.wait();
+                    break;
+                }
                 match child.try_wait() {
                     Ok(Some(_)) | Err(_) => break,
                     Ok(None) if Instant::now() >= deadline => {
@@ -245,15 +257,20 @@ pub fn ledger_bytes_sent(path: &Path) -> u64 {
     })
 }
 
-/// CPU seconds (user + system) of every child process that ended and was waited for,
-/// their own children included.
-pub fn children_cpu_s() -> f64 {
-    // SAFETY: getrusage fills the struct it is given; zeroed is a valid initial value.
-    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
-    // SAFETY: a valid pointer to a rusage, RUSAGE_CHILDREN is a valid `who`.
-    if unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut usage) } != 0 {
-        return 0.0;
-    }
-    let s = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
-    s(usage.ru_utime) + s(usage.ru_stime)
+/// Whether our child `pid` has exited, leaving it unreaped (its zombie's `/proc` entry
+/// still holds its CPU times and its waited-for children's).
+fn exited_unreaped(pid: i32) -> bool {
+    // SAFETY: zeroed is a valid siginfo_t; waitid only writes into it.
+    let mut info: libc::siginfo_t = unsafe { std::mem::zeroed() };
+    // SAFETY: waits for our own child without reaping it (WNOWAIT) and without blocking.
+    let rc = unsafe {
+        libc::waitid(
+            libc::P_PID,
+            pid as libc::id_t,
+            &mut info,
+            libc::WEXITED | libc::WNOWAIT | libc::WNOHANG,
+        )
+    };
+    // SAFETY: si_pid is valid to read for a filled WEXITED siginfo; 0 when none exited.
+    rc == 0 && unsafe { info.si_pid() } == pid
 }
