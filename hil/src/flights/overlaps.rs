@@ -6,6 +6,8 @@
 //! [`OVERLAP_MAX_ANGLE_DEG`]). A drone's frames that overlap form **stretches**: runs of
 //! frames at most [`STRETCH_GAP_S`] apart, one pass over a place.
 
+use std::collections::BTreeMap;
+
 use nalgebra::Isometry3;
 
 use super::closures::overlap_distance;
@@ -69,6 +71,29 @@ impl OverlapCounts {
     }
 }
 
+/// A cube of side [`OVERLAP_RADIUS_M`](super::OVERLAP_RADIUS_M).
+type Cell = (i64, i64, i64);
+
+fn cell(p: &Isometry3<f64>) -> Cell {
+    let v = p.translation.vector / super::OVERLAP_RADIUS_M;
+    (v.x.floor() as i64, v.y.floor() as i64, v.z.floor() as i64)
+}
+
+/// A cell and its 26 neighbours.
+const NEIGHBOURS: [Cell; 27] = {
+    let mut n = [(0, 0, 0); 27];
+    let mut k = 0;
+    while k < 27 {
+        n[k] = (
+            (k % 3) as i64 - 1,
+            ((k / 3) % 3) as i64 - 1,
+            (k / 9) as i64 - 1,
+        );
+        k += 1;
+    }
+    n
+};
+
 /// Groups frames (ascending) into stretches: (first, last).
 fn stretches(frames: &[usize], times: &[f64]) -> Vec<(usize, usize)> {
     let mut out: Vec<(usize, usize)> = Vec::new();
@@ -117,12 +142,24 @@ pub fn overlap_counts_of(tracks: &[(&[f64], &[Isometry3<f64>])]) -> OverlapCount
         for (q, fq) in flights.iter().enumerate() {
             let mut any_other = Vec::new();
             let gap = if q == r { MIN_OWN_GAP_S } else { 0.0 };
+            // q's frames by cell of the overlap radius: a frame's overlaps are in its
+            // cell or a neighbouring one.
+            let mut cells: BTreeMap<Cell, Vec<usize>> = BTreeMap::new();
+            for (j, p) in fq.poses.iter().enumerate() {
+                cells.entry(cell(p)).or_default().push(j);
+            }
             // Per frame of r: the nearest earlier frame of q over the same place.
             let mut earlier: Vec<(usize, usize)> = Vec::new();
             for (i, (pi, ti)) in fr.poses.iter().zip(fr.times).enumerate() {
-                let mut nearest: Option<(usize, f64)> = None;
+                let mut nearest: Option<(f64, usize)> = None;
                 let mut any = false;
-                for (j, (pj, tj)) in fq.poses.iter().zip(fq.times).enumerate() {
+                let c = cell(pi);
+                let near = NEIGHBOURS
+                    .iter()
+                    .filter_map(|d| cells.get(&(c.0 + d.0, c.1 + d.1, c.2 + d.2)))
+                    .flatten();
+                for &j in near {
+                    let (pj, tj) = (&fq.poses[j], fq.times[j]);
                     if q == r && (ti - tj).abs() < gap {
                         continue;
                     }
@@ -130,14 +167,14 @@ pub fn overlap_counts_of(tracks: &[(&[f64], &[Isometry3<f64>])]) -> OverlapCount
                         continue;
                     };
                     any = true;
-                    if *tj < ti - gap && nearest.is_none_or(|n| d < n.1) {
-                        nearest = Some((j, d));
+                    if tj < ti - gap && nearest.is_none_or(|n| (d, j) < n) {
+                        nearest = Some((d, j));
                     }
                 }
                 if q != r && any {
                     any_other.push(i);
                 }
-                if let Some((j, _)) = nearest {
+                if let Some((_, j)) = nearest {
                     earlier.push((i, j));
                 }
             }

@@ -46,8 +46,9 @@ pub const MIN_LAPS: f64 = 1.5;
 /// Each drone flies at 100 % to 100 + 100 × this % of the configured speed: the
 /// configured speed is the slowest drone's.
 pub const SPEED_SPREAD: f64 = 0.1;
-/// Two drones in range at least this long have met (seconds): time to exchange descriptors.
-pub const MIN_MEETING_S: f64 = 3.0;
+/// Two drones in range at least this long have met (seconds): time for the team link to
+/// find the other (Zenoh scouts every 8 s at most) and exchange descriptors.
+pub const MIN_MEETING_S: f64 = 10.0;
 /// Planned drones never come closer than this to each other (metres).
 pub const MIN_SEPARATION_M: f64 = 3.0;
 
@@ -60,7 +61,7 @@ const SAMPLE_S: f64 = 0.5;
 /// Ways of choosing the sectors tried (random connected growths, each in both senses).
 const LAYOUT_TRIES: usize = 96;
 /// Start points of the first drone tried before keeping the plan with the most meetings.
-const ROOT_TRIES: usize = 8;
+const ROOT_TRIES: usize = 16;
 
 /// One drone's sector: the rectangle of `size` lots whose south-west corner is the
 /// intersection `origin`, flown clockwise or counter-clockwise.
@@ -465,15 +466,27 @@ impl Patrol {
 struct Fit {
     safe: bool,
     meets_parent: bool,
+    /// A side shared with another chosen sector is flown twice (or none is shared).
+    twice: bool,
     apart_at_takeoff: bool,
+    /// The longest time in range with the parent, in samples.
+    with_parent: usize,
     meetings: usize,
 }
 
-/// Meetings (in range at least [`MIN_MEETING_S`], not at take-off) and whether the two
-/// start in range and stay apart.
-fn meetings(a: &[Point3<f64>], b: &[Point3<f64>], range: f64) -> (usize, bool, bool) {
+/// Meetings between two tracks: how many (in range at least [`MIN_MEETING_S`], after
+/// take-off and apart again before the end), the longest time in range (samples), whether they start in range, and
+/// whether they stay apart.
+struct Meetings {
+    count: usize,
+    longest: usize,
+    at_takeoff: bool,
+    safe: bool,
+}
+
+fn meetings(a: &[Point3<f64>], b: &[Point3<f64>], range: f64) -> Meetings {
     let min_samples = (MIN_MEETING_S / SAMPLE_S).ceil() as usize;
-    let (mut count, mut run, mut safe) = (0, 0, true);
+    let (mut count, mut run, mut safe, mut longest) = (0, 0, true, 0);
     let close: Vec<bool> = a
         .iter()
         .zip(b)
@@ -490,14 +503,21 @@ fn meetings(a: &[Point3<f64>], b: &[Point3<f64>], range: f64) -> (usize, bool, b
         }
         let ends = !c || k + 1 == close.len();
         if ends && run > 0 {
+            // A meeting starts after take-off and ends before landing: they meet and part.
             let started_at_takeoff = at_takeoff && run == k + usize::from(c);
-            if run >= min_samples && !started_at_takeoff {
-                count += 1;
+            if !started_at_takeoff && !c {
+                count += usize::from(run >= min_samples);
+                longest = longest.max(run);
             }
             run = 0;
         }
     }
-    (count, at_takeoff, safe)
+    Meetings {
+        count,
+        longest,
+        at_takeoff,
+        safe,
+    }
 }
 
 /// Plans every drone's patrol (see the module docs), deterministically from the seed.
@@ -552,29 +572,17 @@ pub(crate) fn plan_sectors(world: &World, config: &FlightConfig) -> Vec<Route> {
     let samples: Vec<f64> = (0..=(duration / SAMPLE_S).floor() as usize)
         .map(|k| k as f64 * SAMPLE_S)
         .collect();
-    // Start points along the loop from which one shared side is flown twice (all of them
-    // when none is, as for a lone drone).
+    // Start points every few metres along the loop.
     let offsets = |p: &Patrol| -> Vec<f64> {
-        let lap = p.sector.lap_m();
-        let all: Vec<f64> = (0..(lap / OFFSET_STEP_M) as usize)
+        (0..(p.sector.lap_m() / OFFSET_STEP_M) as usize)
             .map(|k| k as f64 * OFFSET_STEP_M)
-            .collect();
-        let twice: Vec<f64> = all
-            .iter()
-            .copied()
-            .filter(|&o| p.shared_passes(o, p.speed * duration) >= 2)
-            .collect();
-        if twice.is_empty() {
-            all
-        } else {
-            twice
-        }
+            .collect()
     };
-    let mut best: Option<(usize, usize, Vec<f64>)> = None;
+    let mut best: Option<((usize, usize, usize), Vec<f64>)> = None;
     for _ in 0..ROOT_TRIES {
         let mut chosen: Vec<f64> = Vec::with_capacity(n);
         let mut tracks: Vec<Vec<Point3<f64>>> = Vec::with_capacity(n);
-        let (mut met_parent, mut met) = (0, 0);
+        let (mut met_parent, mut twice, mut met) = (0, 0, 0);
         for p in &patrols {
             let candidates = offsets(p);
             let mut scored: Vec<(Fit, f64, Vec<Point3<f64>>)> = candidates
@@ -585,17 +593,19 @@ pub(crate) fn plan_sectors(world: &World, config: &FlightConfig) -> Vec<Route> {
                     let mut fit = Fit {
                         safe: true,
                         meets_parent: p.parent.is_none(),
+                        twice: p.shared.is_empty() || p.shared_passes(o, p.speed * duration) >= 2,
                         apart_at_takeoff: true,
                         meetings: 0,
+                        with_parent: 0,
                     };
                     for (q, other) in tracks.iter().enumerate() {
-                        let (count, at_takeoff, safe) =
-                            meetings(&track, other, config.radio_range_m);
-                        fit.safe &= safe;
-                        fit.apart_at_takeoff &= !at_takeoff;
-                        fit.meetings += count;
-                        if p.parent == Some(q) && count > 0 {
-                            fit.meets_parent = true;
+                        let m = meetings(&track, other, config.radio_range_m);
+                        fit.safe &= m.safe;
+                        fit.apart_at_takeoff &= !m.at_takeoff;
+                        fit.meetings += m.count;
+                        if p.parent == Some(q) {
+                            fit.meets_parent = m.count > 0;
+                            fit.with_parent = m.longest;
                         }
                     }
                     (fit, o, track)
@@ -605,19 +615,20 @@ pub(crate) fn plan_sectors(world: &World, config: &FlightConfig) -> Vec<Route> {
             scored.retain(|s| Some(s.0) == top);
             let (fit, offset, track) = scored.swap_remove(rng.below(scored.len().max(1)));
             met_parent += usize::from(fit.meets_parent);
+            twice += usize::from(fit.twice);
             met += fit.meetings;
             chosen.push(offset);
             tracks.push(track);
         }
-        let better = best.as_ref().is_none_or(|b| (met_parent, met) > (b.0, b.1));
-        if better {
-            best = Some((met_parent, met, chosen));
+        let score = (met_parent.min(twice), met_parent + twice, met);
+        if best.as_ref().is_none_or(|b| score > b.0) {
+            best = Some((score, chosen));
         }
-        if best.as_ref().is_some_and(|b| b.0 == n) {
+        if best.as_ref().is_some_and(|b| b.0 .0 == n) {
             break;
         }
     }
-    let offsets = best.map(|b| b.2).unwrap_or_default();
+    let offsets = best.map(|b| b.1).unwrap_or_default();
     patrols
         .iter()
         .zip(offsets)
