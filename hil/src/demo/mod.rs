@@ -153,6 +153,25 @@ fn letter(r: usize) -> char {
     crate::flights::robot_name(r)
 }
 
+/// Team link sessions opened since the last snapshot (a meeting counter that grew), as
+/// timeline entries: the rendezvous the robots really had, next to the radio's ranges.
+fn log_sessions(log: &mut RunLog, t_s: f64, before: &[RobotSnapshot], now: &[RobotSnapshot]) {
+    for (old, new) in before.iter().zip(now) {
+        for (peer, &count) in &new.meetings {
+            let was = old.meetings.get(peer).copied().unwrap_or(0);
+            // Each pair once, from its lower robot (a restarted robot's counters start
+            // again: only growth counts).
+            if count > was && new.name.to_string() < *peer {
+                log.timeline.push(TimelineEvent {
+                    t_s,
+                    event: format!("rendezvous: team link session {count}"),
+                    robots: vec![new.name.to_string(), peer.clone()],
+                });
+            }
+        }
+    }
+}
+
 /// Runs the demo; `progress` is called a few times per second.
 pub fn run(
     config: &DemoConfig,
@@ -316,7 +335,9 @@ pub fn run(
         }
         meter.sample(&groups(&robots));
         snap.flight_s = ft.min(flight_total_s);
+        let previous = std::mem::take(&mut snap.robots);
         snap.robots = robots.iter().map(|r| r.snapshot()).collect();
+        log_sessions(&mut log, ft, &previous, &snap.robots);
         if now.duration_since(last_sample) >= Duration::from_secs(1) {
             last_sample = now;
             log.bytes_over_time
@@ -354,21 +375,33 @@ pub fn run(
     });
     let t_settle = Instant::now();
     let mut stable_since: Option<(Instant, Vec<RobotSnapshot>)> = None;
+    let mut met_at_base: std::collections::BTreeSet<(String, String)> = Default::default();
     loop {
         for robot in &mut robots {
             robot.check_alive()?;
         }
         meter.sample(&groups(&robots));
+        let previous = std::mem::take(&mut snap.robots);
         snap.robots = robots.iter().map(|r| r.snapshot()).collect();
         snap.note = None;
         let ft = flight_total_s + t_settle.elapsed().as_secs_f64() * config.rate;
+        log_sessions(&mut log, ft, &previous, &snap.robots);
         if last_sample.elapsed() >= Duration::from_secs(1) {
             last_sample = Instant::now();
             log.bytes_over_time
                 .push((ft, snap.robots.iter().map(|r| r.bytes_sent).collect()));
         }
         progress(&snap);
-        let all_converged = snap.robots.iter().all(|r| r.converged);
+        // Every pair has seen each other at base (their team links had a session to
+        // exchange what the flight left), and every back-end has converged.
+        for r in &snap.robots {
+            for p in &r.present {
+                let me = r.name.to_string();
+                met_at_base.insert((me.clone().min(p.clone()), me.max(p.clone())));
+            }
+        }
+        let all_met = met_at_base.len() >= n * (n - 1) / 2;
+        let all_converged = all_met && snap.robots.iter().all(|r| r.converged);
         // Converged, and nothing moving for a while: no closure, no back-end round, not a
         // byte on the radio (the meeting at base has exchanged what it had to).
         let same = |a: &[RobotSnapshot], b: &[RobotSnapshot]| {

@@ -34,6 +34,10 @@ pub struct RobotSnapshot {
     pub keyframes: u64,
     /// Meetings with any peer (the team link's sessions).
     pub rendezvous: u64,
+    /// Meetings per peer.
+    pub meetings: std::collections::BTreeMap<String, u64>,
+    /// Peers the team link sees now.
+    pub present: Vec<String>,
     /// Inter-robot closures the back-end took, and those PCM left out.
     pub closures: u64,
     pub rejected: u64,
@@ -208,16 +212,28 @@ impl Robot {
         let frontend = read_json(&self.dir.join("frontend.json"));
         let u = |v: Option<&serde_json::Value>| v.and_then(|x| x.as_u64()).unwrap_or(0);
         let b = backend.as_ref();
-        let rendezvous = team
+        let meetings: std::collections::BTreeMap<String, u64> = team
             .as_ref()
             .and_then(|t| t.get("peers"))
             .and_then(|p| p.as_object())
-            .map_or(0, |peers| {
+            .map(|peers| {
                 peers
-                    .values()
-                    .map(|p| u(p.pointer("/stats/meetings")))
-                    .sum()
-            });
+                    .iter()
+                    .map(|(name, p)| (name.clone(), u(p.pointer("/stats/meetings"))))
+                    .collect()
+            })
+            .unwrap_or_default();
+        let rendezvous = meetings.values().sum();
+        let present = team
+            .as_ref()
+            .and_then(|t| t.get("present"))
+            .and_then(|p| p.as_array())
+            .map(|p| {
+                p.iter()
+                    .filter_map(|x| x.as_str().map(String::from))
+                    .collect()
+            })
+            .unwrap_or_default();
         RobotSnapshot {
             name: self.name(),
             state: self.state,
@@ -231,6 +247,8 @@ impl Robot {
                 .and_then(|x| x.as_u64()),
             keyframes: u(b.and_then(|b| b.get("keyframes"))),
             rendezvous,
+            meetings,
+            present,
             closures: u(b.and_then(|b| b.get("closures"))),
             rejected: b
                 .and_then(|b| b.pointer("/team/rejected_closures"))
