@@ -141,6 +141,9 @@ pub struct CpuLog {
     pub flight_machine_busy_s: Option<f64>,
     pub flight_robots_s: f64,
     pub flight_demo_s: f64,
+    /// `getrusage(RUSAGE_CHILDREN)` at the end: every waited-for child and its waited-for
+    /// children (the robots' `up` and services, the `ip`/`nft` commands), to compare.
+    pub waited_children_s: f64,
 }
 
 /// At base, the team is settled once converged and quiet this long...
@@ -434,6 +437,7 @@ pub fn run(
     }
     log.cpu.robots_s = (0..n).map(|r| meter.robot_s(r)).collect();
     log.cpu.per_process = (0..n).map(|r| meter.per_process(r)).collect();
+    log.cpu.waited_children_s = cpu::waited_children_cpu_s();
     log.starts = robots.iter().map(|r| r.starts).collect();
     if let (Some(p), Some(net)) = (config.drop, &net) {
         let (seen, dropped) = net.dropped_packets();

@@ -184,6 +184,9 @@ pub struct CpuSummary {
     /// Other work used more than [`SHARED_FRACTION`] of the machine during the flight:
     /// timings of this run are not the system's.
     pub machine_shared: Option<bool>,
+    /// `getrusage(RUSAGE_CHILDREN)` of the demo at the end (its robots' processes that were
+    /// waited for, and the network commands): the former `robots_cpu_s`, to compare.
+    pub waited_children_s: f64,
 }
 
 pub fn cpu_summary(log: &CpuLog, letters: &[String]) -> CpuSummary {
@@ -215,5 +218,6 @@ pub fn cpu_summary(log: &CpuLog, letters: &[String]) -> CpuSummary {
         flight_demo_s: log.flight_demo_s,
         flight_others_s: others,
         machine_shared: others.map(|o| capacity > 0.0 && o > SHARED_FRACTION * capacity),
+        waited_children_s: log.waited_children_s,
     }
 }

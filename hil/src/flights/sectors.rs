@@ -143,18 +143,32 @@ impl std::fmt::Display for Sector {
 #[derive(Debug, Clone, Copy)]
 struct Grid {
     size: (i32, i32),
+    /// The first sector's south-west corner (the grid need not start at the town's edge).
+    offset: (i32, i32),
     cols: i32,
     rows: i32,
 }
 
 impl Grid {
     fn new(size: (i32, i32)) -> Self {
+        Self::with_offset(size, (0, 0))
+    }
+
+    fn with_offset(size: (i32, i32), offset: (i32, i32)) -> Self {
         let lots = LOTS as i32;
         Grid {
             size,
-            cols: lots / size.0,
-            rows: lots / size.1,
+            offset,
+            cols: (lots - offset.0) / size.0,
+            rows: (lots - offset.1) / size.1,
         }
+    }
+
+    /// The grids of one sector size: every offset within a sector.
+    fn all_of(size: (i32, i32)) -> Vec<Grid> {
+        (0..size.1)
+            .flat_map(|oy| (0..size.0).map(move |ox| Grid::with_offset(size, (ox, oy))))
+            .collect()
     }
 
     fn count(&self) -> usize {
@@ -169,7 +183,10 @@ impl Grid {
     fn sector(&self, index: usize, flip: bool) -> Sector {
         let (i, j) = self.cell(index);
         Sector {
-            origin: (i * self.size.0, j * self.size.1),
+            origin: (
+                self.offset.0 + i * self.size.0,
+                self.offset.1 + j * self.size.1,
+            ),
             size: self.size,
             clockwise: ((i + j) % 2 == 1) != flip,
         }
@@ -276,11 +293,32 @@ struct Layout {
     parents: Vec<Option<usize>>,
 }
 
-/// Grows `tries` random connected sets of `n` sectors and keeps the best: look-alikes
-/// seen the same way by two drones first, then the most shared sides, then the most
-/// look-alikes, then the closest to the town's centre.
-fn choose_layout(grid: &Grid, n: usize, lots: &Lots, rng: &mut SplitMix64) -> Layout {
-    let mut best: Option<((bool, usize, usize, usize, i64), Vec<usize>, bool)> = None;
+/// How a layout ranks: look-alikes seen the same way by two drones first, then the most
+/// shared sides, then the fewest sides on the town's edge (half the view would be the empty
+/// land outside), then the most look-alikes, then the closest to the town's centre.
+type LayoutScore = (bool, usize, i64, usize, usize, i64);
+
+/// Sides of a loop on the town's edge.
+fn edge_sides(sector: &Sector) -> usize {
+    let lots = LOTS as i32;
+    sector
+        .sides()
+        .iter()
+        .filter(|((x0, y0), (x1, y1))| {
+            (x0 == x1 && (*x0 == 0 || *x0 == lots)) || (y0 == y1 && (*y0 == 0 || *y0 == lots))
+        })
+        .count()
+}
+
+/// Grows [`LAYOUT_TRIES`] random connected sets of `n` sectors of `grid` and keeps the
+/// best ([`LayoutScore`]).
+fn choose_layout(
+    grid: &Grid,
+    n: usize,
+    lots: &Lots,
+    rng: &mut SplitMix64,
+) -> (Option<LayoutScore>, Layout) {
+    let mut best: Option<(LayoutScore, Vec<usize>, bool)> = None;
     let centre = f64::from(LOTS as i32) / 2.0;
     for _ in 0..LAYOUT_TRIES {
         let mut set = vec![rng.below(grid.count())];
@@ -310,18 +348,20 @@ fn choose_layout(grid: &Grid, n: usize, lots: &Lots, rng: &mut SplitMix64) -> La
         let spread: f64 = set
             .iter()
             .map(|&s| {
-                let (i, j) = grid.cell(s);
-                let cx = (f64::from(i) + 0.5) * f64::from(grid.size.0) - centre;
-                let cy = (f64::from(j) + 0.5) * f64::from(grid.size.1) - centre;
+                let o = grid.sector(s, false).origin;
+                let cx = f64::from(o.0) + 0.5 * f64::from(grid.size.0) - centre;
+                let cy = f64::from(o.1) + 0.5 * f64::from(grid.size.1) - centre;
                 (cx * cx + cy * cy).sqrt()
             })
             .sum();
         for flip in [false, true] {
             let sectors: Vec<Sector> = set.iter().map(|&s| grid.sector(s, flip)).collect();
             let (between, own) = aliasing(lots, &sectors);
+            let edges: usize = sectors.iter().map(edge_sides).sum();
             let score = (
                 between > 0,
                 shared,
+                -(edges as i64),
                 between,
                 own,
                 -(spread * 100.0).round() as i64,
@@ -331,11 +371,12 @@ fn choose_layout(grid: &Grid, n: usize, lots: &Lots, rng: &mut SplitMix64) -> La
             }
         }
     }
-    let Some((_, set, flip)) = best else {
-        return Layout {
+    let Some((score, set, flip)) = best else {
+        let empty = Layout {
             sectors: Vec::new(),
             parents: Vec::new(),
         };
+        return (None, empty);
     };
     // Drone a patrols the sector with the most chosen neighbours, the others follow in
     // breadth-first order, each attached to an earlier one.
@@ -358,10 +399,11 @@ fn choose_layout(grid: &Grid, n: usize, lots: &Lots, rng: &mut SplitMix64) -> La
         }
         k += 1;
     }
-    Layout {
+    let layout = Layout {
         sectors: order.iter().map(|&s| grid.sector(s, flip)).collect(),
         parents,
-    }
+    };
+    (Some(score), layout)
 }
 
 /// A drone's patrol before its start point is fixed.
@@ -537,9 +579,17 @@ pub(crate) fn plan_sectors(world: &World, config: &FlightConfig) -> Vec<Route> {
         .or_else(|| SIZES.iter().rev().find(fits))
         .copied()
         .unwrap_or((1, 1));
-    let grid = Grid::new(size);
     let lots = Lots::new(world);
-    let layout = choose_layout(&grid, n, &lots, &mut rng);
+    let mut layout = None;
+    for grid in Grid::all_of(size).iter().filter(|g| g.count() >= n) {
+        let (score, candidate) = choose_layout(grid, n, &lots, &mut rng);
+        if layout.as_ref().is_none_or(|(best, _)| score > *best) {
+            layout = Some((score, candidate));
+        }
+    }
+    let Some((_, layout)) = layout else {
+        return Vec::new();
+    };
     let swing = MAX_ALTITUDE_SWING_M.min(0.25 * (config.max_altitude_m - config.min_altitude_m));
     let altitudes: Vec<Altitude> = (0..n)
         .map(|_| Altitude {
