@@ -1,33 +1,47 @@
-//! Acceptance of the end-to-end demo (issue 22): `doorslam demo` with a small team as
-//! separate processes, every robot a host of its own (network namespaces: needs root, as
-//! CI runs), and what its report says:
-//! - every robot ends with a trajectory whose error is bounded (the bound below);
+//! Acceptance of the end-to-end demo (issues 22 and 31): `doorslam demo` with a small team
+//! at drone speed as separate processes, every robot a host of its own (network
+//! namespaces: needs root, as CI runs), and what its report says. One world is rendered
+//! and flown twice (`--world`): plainly, then with a kill and random loss.
+//! - every robot ends in the team's frame, its error there bounded (bounds below, from
+//!   measured runs), and the team's estimate beats the odometry alone (`team_gain`);
 //! - no false (aliased or wrong) closure survives PCM;
+//! - the flights are the scenario: every robot re-visits places of the other and its own;
+//! - the CPU figures are possible (at most the machine's cores over the run), per process;
 //! - the ledgers' bytes match what the team links published;
-//! - killing one robot's processes mid-run: the others keep running, the killed one
-//!   restarts from its journal and rejoins the team estimate.
+//! - killing one robot's processes mid-run: the other keeps running, the killed one
+//!   restarts from its journal and rejoins the team estimate; `--drop` loses about the
+//!   asked share of the packets between robots, and both are in the summary.
 
 use std::path::Path;
 use std::process::Command;
 
 use serde_json::Value;
 
-/// ATE bound of every robot's team estimate in the team's frame (metres): the flights
-/// are 60–100 m long; odometry drifts ~1 % and the closures pull the robots together.
-const ATE_BOUND_M: f64 = 2.0;
+/// The test's flights: 2 robots, 60 s each at 5 m/s (the default speed).
+const ROBOTS: usize = 2;
+const DURATION_S: &str = "60";
+/// Bounds of every robot's team estimate in the team's frame (metres), and of the team's
+/// gain over odometry alone: twice / half what runs of this test measured (BENCHMARKS.md,
+/// "tests/demo.rs"), so a regression shows while run-to-run scatter does not.
+const ATE_BOUND_M: f64 = 20.0;
+const KILL_ATE_BOUND_M: f64 = 25.0;
+const MIN_TEAM_GAIN: f64 = 0.5;
+/// Random loss asked for in the second run, and how far the measured share may be from
+/// it (thousands of packets: the binomial spread is ~1 %).
+const DROP: f64 = 0.3;
+const DROP_TOLERANCE: f64 = 0.05;
 
 fn demo(out: &Path, extra: &[&str]) -> Value {
     assert!(
         unsafe { libc::geteuid() } == 0,
         "this test needs root: every robot of the demo is a network namespace (run the tests as root, as CI does)"
     );
+    let robots = ROBOTS.to_string();
     let run = Command::new(env!("CARGO_BIN_EXE_doorslam"))
         .args([
             "demo",
             "--robots",
-            "2",
-            "--frames",
-            "150",
+            &robots,
             "--settle-s",
             "40",
             "--json",
@@ -60,6 +74,30 @@ fn demo(out: &Path, extra: &[&str]) -> Value {
             "{file} missing from the report folder"
         );
     }
+    // Today's fields stay, the new ones are there.
+    for field in [
+        "robots",
+        "frames",
+        "mode",
+        "source",
+        "per_robot",
+        "team_ate_m",
+        "centralized_ate_m",
+        "converged_at_base",
+        "closures",
+        "bandwidth",
+        "timeline",
+        "durations",
+        "plots",
+        "team_gain",
+        "drop",
+        "kill",
+        "realtime",
+        "cpu",
+        "scenario",
+    ] {
+        assert!(summary.get(field).is_some(), "summary.json lacks {field}");
+    }
     summary
 }
 
@@ -88,25 +126,80 @@ fn ledgers_match_published(out: &Path, robots: &[&str]) {
     }
 }
 
-#[test]
-fn two_robots_build_one_map() {
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("run");
-    let s = demo(&out, &[]);
-    assert_eq!(s["mode"], "netns");
+/// Every robot in the team's frame within `bound`, the team better than odometry alone
+/// by at least `MIN_TEAM_GAIN`, no false closure kept.
+fn one_map(s: &Value, bound: f64) {
     for r in ["a", "b"] {
         let x = &s["per_robot"][r];
         assert!(x["keyframes"].as_u64().unwrap() > 10, "{r}: {x}");
-        assert_eq!(x["anchored"], true, "{r} is not in the team's frame: {x}");
+        assert_eq!(
+            x["in_team_frame"], true,
+            "{r} is not in the team's frame: {x}"
+        );
         let ate = x["ate_team_frame_m"].as_f64().unwrap_or(f64::INFINITY);
-        assert!(ate < ATE_BOUND_M, "{r}: ATE in the team frame {ate} m: {x}");
+        assert!(ate < bound, "{r}: ATE in the team frame {ate} m: {x}");
     }
+    assert_eq!(s["robots_in_team_frame"], ROBOTS);
+    let gain = s["team_gain"].as_f64().unwrap_or(0.0);
+    assert!(gain >= MIN_TEAM_GAIN, "team_gain {gain}");
     let c = &s["closures"];
     assert!(
         c["true_accepted"].as_u64().unwrap() > 0,
         "no true closure kept: {c}"
     );
     assert_eq!(c["false_accepted"], 0, "a false closure survived PCM: {c}");
+}
+
+/// CPU per robot and process is measured and possible: above zero, at most the machine's
+/// cores over the run's wall time.
+fn honest_cpu(s: &Value) {
+    let d = &s["durations"];
+    let cpu = d["robots_cpu_s"].as_f64().unwrap();
+    let cores = s["cpu"]["cores"].as_f64().unwrap();
+    let wall = d["flight_s"].as_f64().unwrap() + d["settle_s"].as_f64().unwrap() + 30.0;
+    assert!(
+        cpu > 0.0 && cpu <= cores * wall,
+        "robots_cpu_s {cpu} on {cores} cores in about {wall} s"
+    );
+    for r in ["a", "b"] {
+        let x = &s["cpu"]["per_robot"][r];
+        assert!(x["total_s"].as_f64().unwrap() > 0.0, "{r}: {x}");
+        assert!(
+            x["per_process"]["frontend"].as_f64().unwrap() > 0.0,
+            "{r}: {x}"
+        );
+        let rt = &s["realtime"]["per_robot"][r];
+        assert!(rt["camera_published"].as_u64().unwrap() > 0, "{r}: {rt}");
+        assert!(rt["vo_frames"].as_u64().unwrap() > 0, "{r}: {rt}");
+    }
+    assert!(s["realtime"]["verdict"]
+        .as_str()
+        .unwrap()
+        .contains("real time"));
+}
+
+#[test]
+fn two_robots_build_one_map_and_a_killed_robot_rejoins_on_a_lossy_radio() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let s = demo(&out, &["--duration-s", DURATION_S]);
+    assert_eq!(s["mode"], "netns");
+    assert!(s["drop"].is_null() && s["kill"].is_null());
+    one_map(&s, ATE_BOUND_M);
+    honest_cpu(&s);
+    // The scenario: each robot flies over places the other saw before, and its own.
+    let sc = &s["scenario"];
+    assert_eq!(sc["plan"], "sectors");
+    assert!(
+        sc["revisits"]["a"]["b"].as_u64().unwrap() + sc["revisits"]["b"]["a"].as_u64().unwrap()
+            >= 2,
+        "{sc}"
+    );
+    for r in ["a", "b"] {
+        assert!(sc["revisits"][r][r].as_u64().unwrap() >= 1, "{sc}");
+        assert!(s["per_robot"][r]["speed_mps"].as_f64().unwrap() >= 4.9);
+    }
+    assert!(sc["meetings_in_flight"].as_u64().unwrap() >= 1, "{sc}");
     ledgers_match_published(&out, &["a", "b"]);
     // The report folder is what `doorslam bw --json` reads.
     let bw = Command::new(env!("CARGO_BIN_EXE_doorslam"))
@@ -117,13 +210,22 @@ fn two_robots_build_one_map() {
     assert!(bw.status.success());
     let bw: Value = serde_json::from_slice(&bw.stdout).unwrap();
     assert!(bw["per_kind"]["descriptor"]["count"].as_u64().unwrap() > 0);
-}
 
-#[test]
-fn a_killed_robot_restarts_and_rejoins() {
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("run");
-    let s = demo(&out, &["--kill", "b@6"]);
+    // The same world again, robot b killed mid-flight, 30 % of the packets lost.
+    let again = dir.path().join("kill");
+    let world = out.join("world");
+    let drop = DROP.to_string();
+    let s = demo(
+        &again,
+        &[
+            "--world",
+            world.to_str().unwrap(),
+            "--kill",
+            "b@25",
+            "--drop",
+            &drop,
+        ],
+    );
     let events: Vec<String> = s["timeline"]
         .as_array()
         .unwrap()
@@ -136,23 +238,89 @@ fn a_killed_robot_restarts_and_rejoins() {
         "{events:?}"
     );
     assert_eq!(s["per_robot"]["b"]["starts"], 2);
+    assert_eq!(s["kill"]["robot"], "b");
+    assert_eq!(s["kill"]["at_s"], 25.0);
+    let d = &s["drop"];
+    let (packets, dropped) = (
+        d["packets"].as_u64().unwrap(),
+        d["dropped"].as_u64().unwrap(),
+    );
+    let share = dropped as f64 / packets.max(1) as f64;
+    assert!(
+        packets > 100 && (share - DROP).abs() < DROP_TOLERANCE,
+        "asked to drop {DROP}, dropped {dropped} of {packets}: {d}"
+    );
     // The restarted robot recovered its journal and is back in the team's frame.
     let backend: Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("b/backend.json")).unwrap())
+        serde_json::from_str(&std::fs::read_to_string(again.join("b/backend.json")).unwrap())
             .unwrap();
     assert!(
         backend["report"]["recovered_keyframes"].as_u64().unwrap() > 0,
         "{backend}"
     );
-    for r in ["a", "b"] {
-        let x = &s["per_robot"][r];
-        assert_eq!(x["anchored"], true, "{r}: {x}");
-        let ate = x["ate_team_frame_m"].as_f64().unwrap_or(f64::INFINITY);
-        assert!(
-            ate < ATE_BOUND_M,
-            "{r}: ATE in the team frame {ate} m after the kill: {x}"
-        );
-    }
-    assert_eq!(s["closures"]["false_accepted"], 0);
-    ledgers_match_published(&out, &["a"]);
+    one_map(&s, KILL_ATE_BOUND_M);
+    ledgers_match_published(&again, &["a"]);
+}
+
+#[test]
+fn bad_demo_flags_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let run = |args: &[&str]| {
+        let r = Command::new(env!("CARGO_BIN_EXE_doorslam"))
+            .arg("demo")
+            .args(args)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(!r.status.success(), "{args:?} was accepted");
+        String::from_utf8_lossy(&r.stderr).into_owned()
+    };
+    assert!(run(&["--frames", "100", "--duration-s", "10"]).contains("--duration-s"));
+    assert!(run(&["--drop", "1.5"]).contains("drop = 1.5"));
+    assert!(run(&["--speed-mps", "40"]).contains("speed_mps = 40"));
+    let missing = dir.path().join("no-world");
+    let err = run(&["--world", missing.to_str().unwrap()]);
+    assert!(err.contains("no-world"), "{err}");
+    // A world with another team size is refused by name.
+    let world = dir.path().join("w");
+    let sim = Command::new(env!("CARGO_BIN_EXE_doorslam"))
+        .args([
+            "sim",
+            "world",
+            "--plan",
+            "sectors",
+            "--robots",
+            "3",
+            "--frames",
+            "3",
+            "--resolution",
+            "32x24",
+            "--out",
+        ])
+        .arg(&world)
+        .output()
+        .unwrap();
+    assert!(
+        sim.status.success(),
+        "{}",
+        String::from_utf8_lossy(&sim.stderr)
+    );
+    let err = run(&["--robots", "2", "--world", world.to_str().unwrap()]);
+    assert!(
+        err.contains("world.txt") && err.contains("3 robots"),
+        "{err}"
+    );
+    // Bad events in a world are named with their line.
+    std::fs::write(
+        world.join("events.csv"),
+        "time_s,event,robot_a,robot_b\n1.0,enter,a,q\n",
+    )
+    .unwrap();
+    let err = run(&["--robots", "3", "--world", world.to_str().unwrap()]);
+    assert!(
+        err.contains("events.csv") && err.contains("line 2"),
+        "{err}"
+    );
 }

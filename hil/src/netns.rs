@@ -212,6 +212,49 @@ impl Net {
         Ok(())
     }
 
+    /// Random loss between robots, and nothing else: every robot drops each packet it
+    /// receives from another robot with `probability` (nftables `numgen random`),
+    /// counting the packets it received and those it dropped ([`Self::dropped_packets`]).
+    pub fn drop_packets(&self, probability: f64) -> Result<(), NetError> {
+        const SCALE: u64 = 1_000_000;
+        let below = (probability.clamp(0.0, 1.0) * SCALE as f64).round() as u64;
+        for ns in &self.ns {
+            let rules = format!(
+                "add table inet dsdrop; \
+                 add chain inet dsdrop in {{ type filter hook input priority -10; }}; \
+                 add rule inet dsdrop in ip saddr 10.0.0.0/8 counter; \
+                 add rule inet dsdrop in ip saddr 10.0.0.0/8 numgen random mod {SCALE} < {below} counter drop"
+            );
+            sh(&["ip", "netns", "exec", ns, "nft", &rules])?;
+        }
+        Ok(())
+    }
+
+    /// Packets from other robots every robot received, and of them those the random loss
+    /// of [`Self::drop_packets`] dropped, summed over the robots (0, 0 without it).
+    pub fn dropped_packets(&self) -> (u64, u64) {
+        let (mut seen, mut dropped) = (0, 0);
+        for ns in &self.ns {
+            let Ok(text) = sh(&[
+                "ip", "netns", "exec", ns, "nft", "list", "table", "inet", "dsdrop",
+            ]) else {
+                continue;
+            };
+            let counts: Vec<u64> = text
+                .split_whitespace()
+                .collect::<Vec<_>>()
+                .windows(2)
+                .filter(|w| w[0] == "packets")
+                .filter_map(|w| w[1].parse().ok())
+                .collect();
+            if let [s, d, ..] = counts[..] {
+                seen += s;
+                dropped += d;
+            }
+        }
+        (seen, dropped)
+    }
+
     /// Bytes robot `i`'s interface sent.
     pub fn tx_bytes(&self, i: usize) -> u64 {
         let path = format!("/sys/class/net/{}/statistics/tx_bytes", self.veth[i]);

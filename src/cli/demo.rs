@@ -22,12 +22,28 @@ pub struct DemoArgs {
     /// Robots in the team.
     #[arg(long, default_value_t = 3)]
     pub robots: usize,
-    /// Frames per robot (10 per second of flight).
-    #[arg(long, default_value_t = 300)]
-    pub frames: usize,
-    /// A KITTI-layout folder (with poses.txt) split into the robots, instead of the town.
+    /// Frames per robot (10 per second of flight); or give `--duration-s`, not both.
+    /// Default: 90 s of flight (900 frames).
+    #[arg(long, conflicts_with = "duration_s")]
+    pub frames: Option<usize>,
+    /// Seconds of flight per robot (10 frames per second); or give `--frames`, not both.
     #[arg(long)]
+    pub duration_s: Option<f64>,
+    /// Speed of the slowest drone (m/s); each of the others flies up to 10 % faster.
+    #[arg(long, default_value_t = demo::config::DEFAULT_SPEED_MPS)]
+    pub speed_mps: f64,
+    /// Random loss between robots: each packet from another robot is dropped with this
+    /// probability (nftables; needs root), e.g. `0.3`.
+    #[arg(long)]
+    pub drop: Option<f64>,
+    /// A KITTI-layout folder (with poses.txt) split into the robots, instead of the town.
+    #[arg(long, conflicts_with = "world")]
     pub dataset: Option<PathBuf>,
+    /// Fly a world rendered before (an earlier demo's `<out>/world`, or `doorslam sim
+    /// world --plan sectors`) instead of rendering one; its robots must be `--robots`,
+    /// its frames, speed and seed are its own.
+    #[arg(long, conflicts_with_all = ["frames", "duration_s", "seed", "camera"])]
+    pub world: Option<PathBuf>,
     /// The report folder (default: a new `doorslam-demo-<unix time>` here).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -90,6 +106,21 @@ fn header(s: &Snapshot) -> String {
     }
 }
 
+/// Frames per robot from `--frames` or `--duration-s` (clap refuses both).
+fn frames(args: &DemoArgs) -> Result<usize> {
+    match (args.frames, args.duration_s) {
+        (Some(f), _) => Ok(f),
+        (None, Some(d)) => {
+            anyhow::ensure!(
+                d.is_finite() && (1.0..=3600.0).contains(&d),
+                "--duration-s {d}: from 1 to 3600 seconds"
+            );
+            Ok((d * demo::config::RATE_HZ).round() as usize)
+        }
+        (None, None) => Ok(demo::config::DEFAULT_FRAMES),
+    }
+}
+
 pub fn run(args: DemoArgs) -> Result<()> {
     let exe = std::env::current_exe().context("locating the doorslam binary")?;
     let out = args.out.clone().unwrap_or_else(|| {
@@ -100,7 +131,10 @@ pub fn run(args: DemoArgs) -> Result<()> {
     });
     let mut config = DemoConfig::new(exe, out.clone());
     config.robots = args.robots;
-    config.frames = args.frames;
+    config.frames = frames(&args)?;
+    config.speed_mps = args.speed_mps;
+    config.drop = args.drop;
+    config.world = args.world.clone();
     config.dataset = args.dataset.clone();
     config.kill = args.kill;
     config.restart_after_s = args.restart_after_s;
@@ -166,9 +200,12 @@ pub fn run(args: DemoArgs) -> Result<()> {
         println!("{}", serde_json::to_string(&summary)?);
     } else {
         println!(
-            "doorslam demo: {} robots; team ATE {} m (centralized oracle {} m); closures {} ({} true, {} false kept by PCM); {:.1} kB between robots; {:.0} s",
+            "doorslam demo: {} robots; team ATE {} m (centralized oracle {} m), team gain {}, {} of {} robots in the team frame; closures {} ({} true, {} false kept by PCM); {:.1} kB between robots; {:.0} s",
             summary.robots,
             summary.team_ate_m.map_or("—".into(), |v| format!("{v:.2}")),
+            summary.team_gain.map_or("—".into(), |v| format!("{v:.2}")),
+            summary.robots_in_team_frame,
+            summary.robots,
             summary.centralized_ate_m.map_or("—".into(), |v| format!("{v:.2}")),
             summary.closures.total,
             summary.closures.true_closures,
@@ -176,6 +213,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
             summary.bandwidth.get("total_bytes").and_then(|v| v.as_u64()).unwrap_or(0) as f64 / 1e3,
             summary.durations.total_s
         );
+        println!("{}", summary.realtime.verdict);
         println!("report: {}", out.join("report.md").display());
     }
     Ok(())

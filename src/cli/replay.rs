@@ -48,6 +48,7 @@ pub fn run(args: ReplayArgs) -> Result<()> {
         wait_for_subscribers_s: args.wait_s,
         step: args.step,
         start_unix_ms: None,
+        status_file: None,
     };
     anyhow::ensure!(
         args.rate.is_finite() && args.rate >= 0.0,

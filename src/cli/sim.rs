@@ -276,6 +276,11 @@ pub struct WorldArgs {
     /// Seeds both the town and the flights.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// How routes are planned: `designed` (anchor, follower and alias partner in groups of
+    /// three) or `sectors` (every drone patrols its own sector, neighbours share a street:
+    /// the demo's scenario).
+    #[arg(long, value_enum, default_value_t = PlanArg::Designed)]
+    pub plan: PlanArg,
     #[arg(long)]
     pub out: PathBuf,
     /// Print one JSON object on stdout instead of a summary line.
@@ -326,6 +331,21 @@ pub struct CameraArgs {
     /// Fraction of light lost in the farthest image corner; 0: none.
     #[arg(long, default_value_t = SensorModel::default().vignetting)]
     pub vignetting: f64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum PlanArg {
+    Designed,
+    Sectors,
+}
+
+impl From<PlanArg> for doorslam_hil::flights::FlightPlan {
+    fn from(p: PlanArg) -> Self {
+        match p {
+            PlanArg::Designed => Self::Designed,
+            PlanArg::Sectors => Self::Sectors,
+        }
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -383,6 +403,7 @@ fn run_world(a: WorldArgs) -> Result<()> {
         radio_range_m: a.radio_range_m,
         speed_mps: a.speed_mps,
         seed: a.seed,
+        plan: a.plan.into(),
         ..FlightConfig::default()
     };
     let world = doorslam_hil::World::town(a.seed);
@@ -415,6 +436,8 @@ fn run_world(a: WorldArgs) -> Result<()> {
             "camera": model.name(),
             "overlap_candidates": overlaps,
             "aliased_candidates": aliased,
+            "own_candidates": team.own.len(),
+            "plan": config.plan.as_str(),
             "rendezvous_events": team.events.len(),
             "seconds": seconds,
         });

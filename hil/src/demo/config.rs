@@ -7,7 +7,8 @@ use std::path::{Path, PathBuf};
 use doorslam_backend::eval::Trajectory;
 
 use crate::flights::{
-    camera_for_resolution, robot_name, simulate_team, write_team, FlightConfig, RangeEvent,
+    camera_for_resolution, robot_name, simulate_team, write_team, FlightConfig, FlightPlan,
+    RangeEvent, RangeEventKind,
 };
 
 use super::{io_err, DemoError};
@@ -43,6 +44,13 @@ impl std::str::FromStr for Kill {
     }
 }
 
+/// Frames per robot of the default scenario: 90 s of flight at 10 Hz.
+pub const DEFAULT_FRAMES: usize = 900;
+/// The default scenario's slowest drone (m/s).
+pub const DEFAULT_SPEED_MPS: f64 = 5.0;
+/// Frames per second of the rendered flights.
+pub const RATE_HZ: f64 = 10.0;
+
 /// What to run.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DemoConfig {
@@ -51,11 +59,21 @@ pub struct DemoConfig {
     /// The report folder (must not exist, or be empty).
     pub out: PathBuf,
     pub robots: usize,
-    /// Frames per robot (rendered flights); with `dataset`, all its frames are used.
+    /// Frames per robot (rendered flights, at 10 Hz); with `dataset`, all its frames are
+    /// used, with `world` its own.
     pub frames: usize,
+    /// The slowest drone's speed (the others fly up to 10 % faster), rendered flights.
+    pub speed_mps: f64,
+    /// Radio range between drones (metres), rendered flights.
+    pub radio_range_m: f64,
     /// A KITTI-layout folder split into `robots` consecutive parts instead of the town.
     pub dataset: Option<PathBuf>,
+    /// A world rendered before (an earlier demo's `<out>/world`, or `doorslam sim world`):
+    /// flown instead of rendering a new one.
+    pub world: Option<PathBuf>,
     pub kill: Option<Kill>,
+    /// Probability that a packet between robots is lost (nftables, at random), or none.
+    pub drop: Option<f64>,
     /// Seconds between a kill and the restart.
     pub restart_after_s: f64,
     /// Replay speed (1 = real time).
@@ -81,9 +99,13 @@ impl DemoConfig {
             exe,
             out,
             robots: 3,
-            frames: 300,
+            frames: DEFAULT_FRAMES,
+            speed_mps: DEFAULT_SPEED_MPS,
+            radio_range_m: FlightConfig::default().radio_range_m,
             dataset: None,
+            world: None,
             kill: None,
+            drop: None,
             restart_after_s: 3.0,
             rate: 1.0,
             seed: 1,
@@ -112,7 +134,24 @@ impl DemoConfig {
                 ));
             }
         }
+        if let Some(p) = self.drop {
+            if !(p.is_finite() && (0.0..1.0).contains(&p)) {
+                return bad(format!(
+                    "drop = {p}: a probability from 0 to below 1 (0.3: three packets in ten lost)"
+                ));
+            }
+        }
+        if !(self.speed_mps.is_finite() && (0.5..=9.0).contains(&self.speed_mps)) {
+            return bad(format!(
+                "speed_mps = {}: from 0.5 to 9 (the fastest drone flies 10 % faster, at most 10 m/s)",
+                self.speed_mps
+            ));
+        }
+        if self.dataset.is_some() && self.world.is_some() {
+            return bad("dataset and world: fly one of them".into());
+        }
         for (name, v, max) in [
+            ("radio_range_m", self.radio_range_m, 1e6),
             ("rate", self.rate, 100.0),
             ("startup_s", self.startup_s, 600.0),
             ("settle_s", self.settle_s, 3600.0),
@@ -167,6 +206,10 @@ pub struct World {
     pub events: Vec<RangeEvent>,
     /// The simulator's closure candidates (`closures.csv`), when rendered.
     pub closures_csv: Option<PathBuf>,
+    /// Each drone's own candidates (`revisits.csv`), when rendered.
+    pub revisits_csv: Option<PathBuf>,
+    /// `world.txt` of a rendered world: plan, roles, camera (key, value), in file order.
+    pub description: Vec<(String, String)>,
     pub frames: usize,
     pub rate_hz: f64,
     /// Frames per robot (the split parts may differ by one).
@@ -188,9 +231,10 @@ impl World {
         config: &DemoConfig,
         progress: &mut dyn FnMut(usize, usize),
     ) -> Result<World, DemoError> {
-        match &config.dataset {
-            Some(dir) => Self::split(dir, config.robots),
-            None => Self::render(config, progress),
+        match (&config.dataset, &config.world) {
+            (Some(dir), _) => Self::split(dir, config.robots),
+            (None, Some(dir)) => Self::load(dir, config.robots),
+            (None, None) => Self::render(config, progress),
         }
     }
 
@@ -203,7 +247,11 @@ impl World {
         let flight = FlightConfig {
             robots: config.robots,
             frames: config.frames,
+            rate_hz: RATE_HZ,
+            speed_mps: config.speed_mps,
+            radio_range_m: config.radio_range_m,
             seed: config.seed,
+            plan: FlightPlan::Sectors,
             ..FlightConfig::default()
         };
         let world = crate::World::town(config.seed);
@@ -235,18 +283,75 @@ impl World {
             })
         })?;
         progress(total, total);
-        let n = config.robots;
+        Self::load(&dir, config.robots)
+    }
+
+    /// A rendered world folder: `world.txt` (robots, frames, rate), `events.csv`, every
+    /// robot's sequence with its ground truth, `closures.csv` and `revisits.csv`.
+    fn load(dir: &Path, robots: usize) -> Result<World, DemoError> {
+        let fail = |path: PathBuf, reason: String| DemoError::Io { path, reason };
+        let world_txt = dir.join("world.txt");
+        let text = std::fs::read_to_string(&world_txt).map_err(io_err(&world_txt))?;
+        let description: Vec<(String, String)> = text
+            .lines()
+            .filter(|l| !l.starts_with('#'))
+            .filter_map(|l| l.split_once(" = "))
+            .map(|(k, v)| (k.trim().to_string(), v.trim().trim_matches('"').to_string()))
+            .collect();
+        let get = |key: &str| -> Result<&str, DemoError> {
+            description
+                .iter()
+                .find(|(k, _)| k == key)
+                .map(|(_, v)| v.as_str())
+                .ok_or_else(|| fail(world_txt.clone(), format!("no {key} line")))
+        };
+        let number = |key: &str| -> Result<f64, DemoError> {
+            let v = get(key)?;
+            v.parse::<f64>()
+                .ok()
+                .filter(|x| x.is_finite() && *x > 0.0)
+                .ok_or_else(|| {
+                    fail(
+                        world_txt.clone(),
+                        format!("{key} = {v}: not a positive number"),
+                    )
+                })
+        };
+        let (n, frames, rate_hz) = (
+            number("robots")? as usize,
+            number("frames")? as usize,
+            number("rate_hz")?,
+        );
+        if n != robots {
+            return Err(fail(
+                world_txt.clone(),
+                format!("a world of {n} robots, the demo was asked for {robots}"),
+            ));
+        }
+        let events = read_events(&dir.join("events.csv"), n, rate_hz)?;
         let per_robot = |r: usize| dir.join(robot_name(r).to_string());
+        let truth: Vec<Trajectory> = (0..n)
+            .map(|r| ground_truth(&per_robot(r)))
+            .collect::<Result<_, _>>()?;
+        for (r, t) in truth.iter().enumerate() {
+            if t.len() != frames {
+                return Err(fail(
+                    per_robot(r),
+                    format!("{} frames, world.txt says {frames}", t.len()),
+                ));
+            }
+        }
+        let optional = |name: &str| Some(dir.join(name)).filter(|p| p.is_file());
         Ok(World {
             sources: (0..n).map(|r| (per_robot(r), None)).collect(),
-            truth: (0..n)
-                .map(|r| ground_truth(&per_robot(r)))
-                .collect::<Result<_, _>>()?,
-            events: team.events.clone(),
-            closures_csv: Some(dir.join("closures.csv")),
-            frames: config.frames,
-            rate_hz: flight.rate_hz,
-            robot_frames: vec![config.frames; n],
+            truth,
+            events,
+            closures_csv: optional("closures.csv"),
+            revisits_csv: optional("revisits.csv"),
+            description,
+            frames,
+            rate_hz,
+            robot_frames: vec![frames; n],
         })
     }
 
@@ -277,11 +382,64 @@ impl World {
             truth: vec![truth; robots],
             events: Vec::new(),
             closures_csv: None,
+            revisits_csv: None,
+            description: Vec::new(),
             frames,
             rate_hz,
             robot_frames,
         })
     }
+}
+
+/// `events.csv` (`time_s,event,robot_a,robot_b`) of a world of `robots` robots.
+fn read_events(path: &Path, robots: usize, rate_hz: f64) -> Result<Vec<RangeEvent>, DemoError> {
+    let text = std::fs::read_to_string(path).map_err(io_err(path))?;
+    let mut events = Vec::new();
+    for (line, row) in text.lines().enumerate().skip(1) {
+        if row.trim().is_empty() {
+            continue;
+        }
+        let bad = |what: &str| DemoError::Io {
+            path: path.to_path_buf(),
+            reason: format!("line {}: {what}: {row:?}", line + 1),
+        };
+        let f: Vec<&str> = row.split(',').map(str::trim).collect();
+        let [time, kind, a, b] = f[..] else {
+            return Err(bad("expected time_s,event,robot_a,robot_b"));
+        };
+        let time_s: f64 = time
+            .parse()
+            .ok()
+            .filter(|t: &f64| t.is_finite() && *t >= 0.0)
+            .ok_or_else(|| bad("not a time"))?;
+        let kind = match kind {
+            "enter" => RangeEventKind::Enter,
+            "leave" => RangeEventKind::Leave,
+            _ => return Err(bad("the event is neither enter nor leave")),
+        };
+        let robot = |s: &str| match s.as_bytes() {
+            [c @ b'a'..=b'z'] if usize::from(c - b'a') < robots => Ok(usize::from(c - b'a')),
+            _ => Err(bad("unknown robot")),
+        };
+        let (robot_a, robot_b) = (robot(a)?, robot(b)?);
+        if robot_a >= robot_b {
+            return Err(bad("robot_a must come before robot_b"));
+        }
+        if events
+            .last()
+            .is_some_and(|e: &RangeEvent| e.time_s > time_s)
+        {
+            return Err(bad("events out of time order"));
+        }
+        events.push(RangeEvent {
+            time_s,
+            frame: (time_s * rate_hz).round() as usize,
+            kind,
+            robot_a,
+            robot_b,
+        });
+    }
+    Ok(events)
 }
 
 /// The ground truth of a dataset folder (`poses.txt`), stamped as the replay stamps its
@@ -336,6 +494,7 @@ path = "{path}"
 rate = {rate}
 wait_for_subscribers_s = 30.0
 start_unix_ms = {start_unix_ms}
+status_file = "{out}/{name}/camera.json"
 "#,
         name = robot_name(r),
         path = path.display(),

@@ -25,7 +25,10 @@
 //! gives up on it and the demo stops naming it.
 
 pub mod config;
+pub mod cpu;
+mod markdown;
 pub mod plots;
+pub mod realtime;
 pub mod report;
 pub mod robot;
 
@@ -112,10 +115,35 @@ pub struct RunLog {
     /// Flight time, then bytes sent so far per robot (ledger), sampled once a second.
     pub bytes_over_time: Vec<(f64, Vec<u64>)>,
     pub timeline: Vec<TimelineEvent>,
-    /// CPU seconds of every robot process together (user + system).
-    pub robots_cpu_s: f64,
+    /// CPU of the robots' processes and of the machine ([`cpu`]).
+    pub cpu: CpuLog,
+    /// Random loss between robots, when asked for: (probability, packets from other
+    /// robots received, of them dropped).
+    pub drop: Option<(f64, u64, u64)>,
     /// Times each robot's processes were started.
     pub starts: Vec<u32>,
+}
+
+/// CPU time, measured per process ([`cpu::CpuMeter`]) and for the machine.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct CpuLog {
+    /// Per robot: CPU seconds of all its processes over the run.
+    pub robots_s: Vec<f64>,
+    /// Per robot: sampled CPU seconds per process (`up`, each service).
+    pub per_process: Vec<std::collections::BTreeMap<String, f64>>,
+    /// CPU seconds of the demo's own process while rendering.
+    pub render_s: f64,
+    /// Cores of the machine.
+    pub cores: usize,
+    /// Over the flight (wall seconds): busy CPU of the whole machine, and of the robots'
+    /// processes (sampled); the rest is the demo itself and whatever else ran.
+    pub flight_wall_s: f64,
+    pub flight_machine_busy_s: Option<f64>,
+    pub flight_robots_s: f64,
+    pub flight_demo_s: f64,
+    /// `getrusage(RUSAGE_CHILDREN)` at the end: every waited-for child and its waited-for
+    /// children (the robots' `up` and services, the `ip`/`nft` commands), to compare.
+    pub waited_children_s: f64,
 }
 
 /// At base, the team is settled once converged and quiet this long...
@@ -128,12 +156,36 @@ fn letter(r: usize) -> char {
     crate::flights::robot_name(r)
 }
 
+/// Team link sessions opened since the last snapshot (a meeting counter that grew), as
+/// timeline entries: the rendezvous the robots really had, next to the radio's ranges.
+fn log_sessions(log: &mut RunLog, t_s: f64, before: &[RobotSnapshot], now: &[RobotSnapshot]) {
+    for (old, new) in before.iter().zip(now) {
+        for (peer, &count) in &new.meetings {
+            let was = old.meetings.get(peer).copied().unwrap_or(0);
+            // Each pair once, from its lower robot (a restarted robot's counters start
+            // again: only growth counts).
+            if count > was && new.name.to_string() < *peer {
+                log.timeline.push(TimelineEvent {
+                    t_s,
+                    event: format!("rendezvous: team link session {count}"),
+                    robots: vec![new.name.to_string(), peer.clone()],
+                });
+            }
+        }
+    }
+}
+
 /// Runs the demo; `progress` is called a few times per second.
 pub fn run(
     config: &DemoConfig,
     progress: &mut dyn FnMut(&Snapshot),
 ) -> Result<report::Summary, DemoError> {
     config.validate()?;
+    if config.drop.is_some() && !crate::netns::is_root() {
+        return Err(DemoError::Config(
+            "drop: random loss between robots needs their network namespaces (run as root)".into(),
+        ));
+    }
     let out = &config.out;
     config::prepare_out(out)?;
     let mut log = RunLog::default();
@@ -148,11 +200,13 @@ pub fn run(
 
     // 1. The world.
     let t = Instant::now();
+    let cpu_before = cpu::own_cpu_s();
     let world = config::World::prepare(config, &mut |done, total| {
         snap.rendered = (done, total);
         progress(&snap);
     })?;
     log.render_s = t.elapsed().as_secs_f64();
+    log.cpu.render_s = cpu::own_cpu_s() - cpu_before;
     let n = world.robots();
 
     // 2. The network.
@@ -192,7 +246,18 @@ pub fn run(
                 net.cut(a, b)?;
             }
         }
+        if let Some(p) = config.drop {
+            net.drop_packets(p)?;
+        }
     }
+    let mut meter = cpu::CpuMeter::default();
+    let groups = |robots: &[robot::Robot]| -> Vec<(usize, i32)> {
+        robots
+            .iter()
+            .enumerate()
+            .filter_map(|(r, x)| Some((r, x.pgid()?)))
+            .collect()
+    };
     snap.phase = Phase::Starting;
     for robot in &mut robots {
         robot.start(&config.exe, net.as_ref())?;
@@ -207,6 +272,8 @@ pub fn run(
     let mut restarted = false;
     let mut last_sample = Instant::now() - Duration::from_secs(1);
     let t_flight = Instant::now();
+    let machine_before = cpu::machine_busy_s();
+    let demo_before = cpu::own_cpu_s();
     snap.phase = Phase::Flying;
 
     // 4. The flight.
@@ -241,6 +308,8 @@ pub fn run(
         }
         if let Some(k) = &config.kill {
             if killed_at.is_none() && !restarted && ft >= k.at_s {
+                // The killed processes' last readings: what they used until now.
+                meter.sample(&groups(&robots));
                 robots[k.robot].kill()?;
                 killed_at = Some(now);
                 log.timeline.push(TimelineEvent {
@@ -267,8 +336,11 @@ pub fn run(
         for robot in &mut robots {
             robot.check_alive()?;
         }
+        meter.sample(&groups(&robots));
         snap.flight_s = ft.min(flight_total_s);
+        let previous = std::mem::take(&mut snap.robots);
         snap.robots = robots.iter().map(|r| r.snapshot()).collect();
+        log_sessions(&mut log, ft, &previous, &snap.robots);
         if now.duration_since(last_sample) >= Duration::from_secs(1) {
             last_sample = now;
             log.bytes_over_time
@@ -281,6 +353,14 @@ pub fn run(
         std::thread::sleep(Duration::from_millis(250));
     }
     log.flight_s = t_flight.elapsed().as_secs_f64();
+    meter.sample(&groups(&robots));
+    log.cpu.flight_wall_s = log.flight_s;
+    log.cpu.flight_robots_s = meter.sampled_total_s();
+    log.cpu.flight_demo_s = cpu::own_cpu_s() - demo_before;
+    if let (Some((before, cores)), Some((after, _))) = (machine_before, cpu::machine_busy_s()) {
+        log.cpu.cores = cores;
+        log.cpu.flight_machine_busy_s = Some(after - before);
+    }
 
     // 5. Back at base: everyone in range until the team estimate settles.
     snap.phase = Phase::AtBase;
@@ -298,20 +378,33 @@ pub fn run(
     });
     let t_settle = Instant::now();
     let mut stable_since: Option<(Instant, Vec<RobotSnapshot>)> = None;
+    let mut met_at_base: std::collections::BTreeSet<(String, String)> = Default::default();
     loop {
         for robot in &mut robots {
             robot.check_alive()?;
         }
+        meter.sample(&groups(&robots));
+        let previous = std::mem::take(&mut snap.robots);
         snap.robots = robots.iter().map(|r| r.snapshot()).collect();
         snap.note = None;
         let ft = flight_total_s + t_settle.elapsed().as_secs_f64() * config.rate;
+        log_sessions(&mut log, ft, &previous, &snap.robots);
         if last_sample.elapsed() >= Duration::from_secs(1) {
             last_sample = Instant::now();
             log.bytes_over_time
                 .push((ft, snap.robots.iter().map(|r| r.bytes_sent).collect()));
         }
         progress(&snap);
-        let all_converged = snap.robots.iter().all(|r| r.converged);
+        // Every pair has seen each other at base (their team links had a session to
+        // exchange what the flight left), and every back-end has converged.
+        for r in &snap.robots {
+            for p in &r.present {
+                let me = r.name.to_string();
+                met_at_base.insert((me.clone().min(p.clone()), me.max(p.clone())));
+            }
+        }
+        let all_met = met_at_base.len() >= n * (n - 1) / 2;
+        let all_converged = all_met && snap.robots.iter().all(|r| r.converged);
         // Converged, and nothing moving for a while: no closure, no back-end round, not a
         // byte on the radio (the meeting at base has exchanged what it had to).
         let same = |a: &[RobotSnapshot], b: &[RobotSnapshot]| {
@@ -338,11 +431,18 @@ pub fn run(
     // Stop every robot cleanly (its services drain and write their files).
     snap.phase = Phase::Stopping;
     progress(&snap);
+    meter.sample(&groups(&robots));
     for robot in &mut robots {
-        robot.stop()?;
+        robot.stop(&mut meter)?;
     }
-    log.robots_cpu_s = robot::children_cpu_s();
+    log.cpu.robots_s = (0..n).map(|r| meter.robot_s(r)).collect();
+    log.cpu.per_process = (0..n).map(|r| meter.per_process(r)).collect();
+    log.cpu.waited_children_s = cpu::waited_children_cpu_s();
     log.starts = robots.iter().map(|r| r.starts).collect();
+    if let (Some(p), Some(net)) = (config.drop, &net) {
+        let (seen, dropped) = net.dropped_packets();
+        log.drop = Some((p, seen, dropped));
+    }
     drop(net);
 
     snap.phase = Phase::Reporting;

@@ -16,7 +16,6 @@
 //! `summary.json` holds the same figures; its fields are documented on [`Summary`].
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use doorslam_backend::eval::{
@@ -42,6 +41,10 @@ pub const TRUE_ROTATION_DEG: f64 = 15.0;
 pub const ALIAS_FRAMES: usize = 5;
 /// Timestamps of keyframes and ground truth match within this (seconds).
 const MAX_TIME_DIFF_S: f64 = 0.005;
+/// An edge between two keyframes of one robot this far apart in time is a loop closure
+/// (odometry joins consecutive keyframes; a restart's segment link spans the seconds the
+/// robot was dead).
+pub const OWN_LOOP_MIN_GAP_S: f64 = 10.0;
 
 /// One robot's figures.
 #[derive(Debug, Clone, Serialize)]
@@ -56,6 +59,9 @@ pub struct RobotSummary {
     pub ate_team_m: Option<f64>,
     /// ATE of the team estimate in the team's frame: one alignment for every robot in it.
     pub ate_team_frame_m: Option<f64>,
+    /// The robot ended in the team's frame (anchored to the anchor most robots share,
+    /// with a team estimate): its `ate_team_frame_m` is measured with the others'.
+    pub in_team_frame: bool,
     /// ATE of the centralized oracle (same closures, same PCM), one alignment.
     pub ate_centralized_m: Option<f64>,
     /// Whether the distributed back-end put the robot in the team's frame, whose robot
@@ -67,6 +73,11 @@ pub struct RobotSummary {
     pub bytes_sent: u64,
     /// Times the robot's processes were started.
     pub starts: u32,
+    /// CPU seconds of all its processes (see `cpu`).
+    pub cpu_s: f64,
+    /// Its flight from ground truth: horizontal distance (m) and mean speed (m/s).
+    pub distance_m: f64,
+    pub speed_mps: f64,
 }
 
 /// One inter-robot closure.
@@ -108,8 +119,51 @@ pub struct Durations {
     pub settle_s: f64,
     pub report_s: f64,
     pub total_s: f64,
-    /// CPU seconds of every robot process together.
+    /// CPU seconds of every robot process together (measured per process, see `cpu`).
     pub robots_cpu_s: f64,
+    /// CPU seconds the demo's own process spent rendering.
+    pub render_cpu_s: f64,
+}
+
+/// Random loss between robots (`--drop`).
+#[derive(Debug, Clone, Serialize)]
+pub struct DropSummary {
+    pub probability: f64,
+    /// Packets from other robots the robots received, summed, and of them those lost.
+    pub packets: u64,
+    pub dropped: u64,
+}
+
+/// The kill of `--kill`.
+#[derive(Debug, Clone, Serialize)]
+pub struct KillSummary {
+    pub robot: String,
+    pub at_s: f64,
+    pub restart_after_s: f64,
+}
+
+/// The flights: how they were planned, and what ground truth says of them.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Scenario {
+    /// `sectors`, `designed` (rendered worlds) or `dataset`.
+    pub plan: String,
+    /// The slowest drone's configured speed (m/s) and the radio range (m), rendered worlds.
+    pub speed_mps: Option<f64>,
+    pub radio_range_m: Option<f64>,
+    /// What each robot's route was designed for.
+    pub roles: BTreeMap<String, String>,
+    /// `revisits.<r>.<q>`: stretches of r's flight over places q saw before (q = r: its
+    /// own, at least 20 s earlier), from ground truth.
+    pub revisits: BTreeMap<String, BTreeMap<String, usize>>,
+    /// Per robot: stretches over places any other robot saw (before or after).
+    pub crossings: BTreeMap<String, usize>,
+    /// The simulator's candidates (`closures.csv`, `revisits.csv`).
+    pub overlap_candidates: usize,
+    pub aliased_candidates: usize,
+    pub own_overlap_candidates: usize,
+    pub own_aliased_candidates: usize,
+    /// Pairs coming into radio range during the flight (not at take-off).
+    pub meetings_in_flight: usize,
 }
 
 /// `summary.json`.
@@ -124,13 +178,51 @@ pub struct Summary {
     /// ATE over every robot in the team's frame (one alignment), distributed and oracle.
     pub team_ate_m: Option<f64>,
     pub centralized_ate_m: Option<f64>,
+    /// What the team bought: the robots' mean odometry-alone ATE over the team-frame ATE
+    /// of the team (`team_ate_m`); above 1 the team's map is better than each robot alone.
+    pub team_gain: Option<f64>,
+    /// Robots in the team's frame, of `robots`.
+    pub robots_in_team_frame: usize,
     pub converged_at_base: bool,
+    /// Inter-robot closures.
     pub closures: ClosureSummary,
+    /// Each robot's loop closures with its own earlier keyframes (at least
+    /// [`OWN_LOOP_MIN_GAP_S`] apart), against the truth the same way.
+    pub own_closures: ClosureSummary,
+    /// The flights' design and what ground truth says of it.
+    pub scenario: Scenario,
+    /// `--drop`: random loss between robots, or null.
+    pub drop: Option<DropSummary>,
+    /// `--kill`: the robot killed, when, and after how long it restarted; or null.
+    pub kill: Option<KillSummary>,
+    /// Whether every robot kept up with its camera on this machine.
+    pub realtime: super::realtime::Realtime,
+    /// Where the CPU went (robots, per process, demo, the machine).
+    pub cpu: super::realtime::CpuSummary,
     /// `doorslam bw --json` of the run.
     pub bandwidth: serde_json::Value,
     pub timeline: Vec<TimelineEvent>,
     pub durations: Durations,
     pub plots: Vec<String>,
+}
+
+impl ClosureSummary {
+    /// Counts one closure in.
+    fn add(&mut self, row: ClosureRow) {
+        let (t, a, k) = (row.truth, row.aliased, row.accepted);
+        self.total += 1;
+        self.true_closures += usize::from(t);
+        self.false_closures += usize::from(!t);
+        self.aliased += usize::from(a);
+        self.accepted += usize::from(k);
+        self.rejected += usize::from(!k);
+        self.true_accepted += usize::from(t && k);
+        self.true_rejected += usize::from(t && !k);
+        self.false_accepted += usize::from(!t && k);
+        self.false_rejected += usize::from(!t && !k);
+        self.aliased_accepted += usize::from(a && k);
+        self.list.push(row);
+    }
 }
 
 fn report_err(e: impl std::fmt::Display) -> DemoError {
@@ -221,6 +313,23 @@ fn aliased_candidates(path: Option<&PathBuf>) -> Vec<(usize, usize, usize, usize
                 letter(f[2])?,
                 f[3].parse().ok()?,
             ))
+        })
+        .collect()
+}
+
+/// `revisits.csv`'s aliased pairs of a robot with itself: (robot, frame, robot, earlier).
+fn own_aliased_candidates(path: Option<&PathBuf>) -> Vec<(usize, usize, usize, usize)> {
+    let Some(text) = path.and_then(|p| std::fs::read_to_string(p).ok()) else {
+        return Vec::new();
+    };
+    let letter = |s: &str| s.bytes().next().map(|c| usize::from(c.wrapping_sub(b'a')));
+    text.lines()
+        .skip(1)
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f.len() == 4 && f[3].trim() == "aliased").then_some(())?;
+            let r = letter(f[0])?;
+            Some((r, f[1].parse().ok()?, r, f[2].parse().ok()?))
         })
         .collect()
 }
@@ -333,6 +442,7 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
                 ate_vo_m: vo.map(|v| v.0),
                 ate_team_m: team.map(|v| v.0),
                 ate_team_frame_m: None,
+                in_team_frame: false,
                 ate_centralized_m: None,
                 anchored,
                 anchor,
@@ -341,6 +451,17 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
                     .unwrap_or(false),
                 bytes_sent: super::robot::ledger_bytes_sent(&dir(r).join("ledger.json")),
                 starts: log.starts.get(r).copied().unwrap_or(0),
+                cpu_s: log.cpu.robots_s.get(r).copied().unwrap_or(0.0),
+                distance_m: truth[r].as_ref().map_or(0.0, horizontal_length),
+                speed_mps: truth[r].as_ref().map_or(0.0, |t| {
+                    let s = t.timestamps();
+                    let span = s.last().copied().unwrap_or(0.0) - s.first().copied().unwrap_or(0.0);
+                    if span > 0.0 {
+                        horizontal_length(t) / span
+                    } else {
+                        0.0
+                    }
+                }),
             },
         );
     }
@@ -357,6 +478,11 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
             .map(|(a, _)| a.clone())
     };
     team_pairs.retain(|r, _| Some(&anchors[r]) == team_anchor.as_ref());
+    for r in team_pairs.keys() {
+        if let Some(x) = per_robot.get_mut(&letters[*r]) {
+            x.in_team_frame = true;
+        }
+    }
     let team_errors = joint_errors(&team_pairs);
     let mut all_team = Vec::new();
     if let Some(errors) = &team_errors {
@@ -410,7 +536,8 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
     }
 
     // Closures against the truth.
-    let aliased = aliased_candidates(world.closures_csv.as_ref());
+    let mut aliased = aliased_candidates(world.closures_csv.as_ref());
+    aliased.extend(own_aliased_candidates(world.revisits_csv.as_ref()));
     let mut rejected: BTreeSet<(String, String)> = BTreeSet::new();
     for r in 0..n {
         if let Some(list) = status(r)
@@ -433,6 +560,7 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
         .map(|r| keyframe_stamps(&dir(r).join("keyframes.csv")))
         .collect();
     let mut closures = ClosureSummary::default();
+    let mut own_closures = ClosureSummary::default();
     if let Ok((merged, _)) = merge_g2o_files(&graphs, ReadOptions::default()) {
         let keys = merged.keys();
         let mut seen = BTreeSet::new();
@@ -441,12 +569,25 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
             let (Some(ra), Some(rb)) = (key::robot(a), key::robot(b)) else {
                 continue;
             };
-            if ra == rb || !seen.insert((a.min(b), a.max(b))) {
+            if !seen.insert((a.min(b), a.max(b))) {
                 continue;
             }
             let (ra, rb) = (usize::from(ra), usize::from(rb));
+            let stamp = |r: usize, k: u64| stamps.get(r)?.get(&key::index(k)).copied();
+            let summary = if ra != rb {
+                &mut closures
+            } else {
+                // One robot's edge: a loop closure only between keyframes far apart in
+                // time (odometry joins neighbours).
+                match (stamp(ra, a), stamp(rb, b)) {
+                    (Some(ta), Some(tb)) if (ta - tb).abs() >= OWN_LOOP_MIN_GAP_S => {
+                        &mut own_closures
+                    }
+                    _ => continue,
+                }
+            };
             let at = |r: usize, k: u64| {
-                let t = *stamps.get(r)?.get(&key::index(k))?;
+                let t = stamp(r, k)?;
                 truth.get(r)?.as_ref().and_then(|gt| truth_at(gt, t))
             };
             let (ta, tb) = (at(ra, a), at(rb, b));
@@ -465,18 +606,7 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
             });
             let (la, lb) = (key::label(a), key::label(b));
             let accepted = !rejected.contains(&(la.clone(), lb.clone()));
-            closures.total += 1;
-            closures.true_closures += usize::from(is_true);
-            closures.false_closures += usize::from(!is_true);
-            closures.aliased += usize::from(is_aliased);
-            closures.accepted += usize::from(accepted);
-            closures.rejected += usize::from(!accepted);
-            closures.true_accepted += usize::from(is_true && accepted);
-            closures.true_rejected += usize::from(is_true && !accepted);
-            closures.false_accepted += usize::from(!is_true && accepted);
-            closures.false_rejected += usize::from(!is_true && !accepted);
-            closures.aliased_accepted += usize::from(is_aliased && accepted);
-            closures.list.push(ClosureRow {
+            summary.add(ClosureRow {
                 a: la,
                 b: lb,
                 truth: is_true,
@@ -501,20 +631,52 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
     let plots = super::plots::draw(out, world, &truth, &team_errors, &team_pairs, log)
         .map_err(report_err)?;
 
+    // The value of the team, the run's honesty figures.
+    let team_ate_m = rmse(&all_team);
+    let vo: Vec<f64> = per_robot.values().filter_map(|x| x.ate_vo_m).collect();
+    let team_gain = team_ate_m
+        .filter(|t| *t > 0.0 && !vo.is_empty())
+        .map(|t| vo.iter().sum::<f64>() / vo.len() as f64 / t);
+    let robots_in_team_frame = per_robot.values().filter(|x| x.in_team_frame).count();
+    let realtime = super::realtime::check(
+        out,
+        &letters,
+        &world.robot_frames,
+        world.rate_hz,
+        &log.starts,
+    );
+    let cpu = super::realtime::cpu_summary(&log.cpu, &letters);
+    let source = match (&config.dataset, &config.world) {
+        (Some(d), _) => format!("dataset {} split into {n} robots", d.display()),
+        (None, Some(w)) => format!("synthetic town, the world rendered in {}", w.display()),
+        (None, None) => format!("synthetic town, seed {}", config.seed),
+    };
+
     let report_s = t_report.elapsed().as_secs_f64();
     let summary = Summary {
         robots: n,
         frames: world.robot_frames.iter().copied().max().unwrap_or(0),
         mode: log.mode.clone(),
-        source: match &config.dataset {
-            Some(d) => format!("dataset {} split into {n} robots", d.display()),
-            None => format!("synthetic town, seed {}", config.seed),
-        },
+        source,
         per_robot,
-        team_ate_m: rmse(&all_team),
+        team_ate_m,
         centralized_ate_m: rmse(&all_oracle),
+        team_gain,
+        robots_in_team_frame,
         converged_at_base: log.converged_at_base,
         closures,
+        own_closures,
+        scenario: scenario(world, &truth),
+        drop: log.drop.map(|(probability, packets, dropped)| DropSummary {
+            probability,
+            packets,
+            dropped,
+        }),
+        kill: config.kill.map(|k| KillSummary {
+            robot: robot_name(k.robot).to_string(),
+            at_s: k.at_s,
+            restart_after_s: config.restart_after_s,
+        }),
         bandwidth,
         timeline: log.timeline.clone(),
         durations: Durations {
@@ -523,120 +685,88 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
             settle_s: log.settle_s,
             report_s,
             total_s: log.render_s + log.flight_s + log.settle_s + report_s,
-            robots_cpu_s: log.robots_cpu_s,
+            robots_cpu_s: cpu.robots_s,
+            render_cpu_s: cpu.render_s,
         },
+        realtime,
+        cpu,
         plots,
     };
     let json = serde_json::to_string_pretty(&summary).map_err(report_err)?;
     let path = out.join("summary.json");
     std::fs::write(&path, json).map_err(io_err(&path))?;
     let path = out.join("report.md");
-    std::fs::write(&path, markdown(&summary, &bw_table)).map_err(io_err(&path))?;
+    std::fs::write(&path, super::markdown::report(&summary, &bw_table)).map_err(io_err(&path))?;
     Ok(summary)
 }
 
-fn m(v: Option<f64>) -> String {
-    v.map_or("—".into(), |x| format!("{x:.2}"))
+/// Horizontal length of a trajectory (metres).
+fn horizontal_length(t: &Trajectory) -> f64 {
+    t.positions()
+        .windows(2)
+        .map(|w| (w[1] - w[0]).xy().norm())
+        .sum()
 }
 
-/// `report.md`.
-fn markdown(s: &Summary, bw_table: &str) -> String {
-    let mut t = String::new();
-    let _ = writeln!(t, "# doorslam demo\n");
-    let _ = writeln!(
-        t,
-        "{} robots, {} frames each, {}; robots as {}. Total {:.0} s (rendering {:.0} s, flight {:.0} s, at base {:.0} s, report {:.1} s); the robots' processes used {:.0} CPU seconds.\n",
-        s.robots,
-        s.frames,
-        s.source,
-        if s.mode == "netns" {
-            "hosts of their own (network namespaces on a bridge, radio range by nftables)"
-        } else {
-            "processes on the loopback (not root: no namespaces, always in range)"
-        },
-        s.durations.total_s,
-        s.durations.render_s,
-        s.durations.flight_s,
-        s.durations.settle_s,
-        s.durations.report_s,
-        s.durations.robots_cpu_s,
-    );
-    let _ = writeln!(t, "![trajectories](trajectories.png)\n");
-    let _ = writeln!(
-        t,
-        "## Trajectory error (ATE, RMSE of keyframe positions, m)\n"
-    );
-    let _ = writeln!(
-        t,
-        "| robot | keyframes | odometry alone | team estimate | team estimate, team frame | centralized oracle, team frame | anchored to | converged |"
-    );
-    let _ = writeln!(t, "|---|---|---|---|---|---|---|---|");
-    for (r, x) in &s.per_robot {
-        let _ = writeln!(
-            t,
-            "| {r} | {} | {} | {} | {} | {} | {} | {} |",
-            x.keyframes,
-            m(x.ate_vo_m),
-            m(x.ate_team_m),
-            m(x.ate_team_frame_m),
-            m(x.ate_centralized_m),
-            if x.anchored { x.anchor.as_str() } else { "—" },
-            if x.converged { "yes" } else { "no" }
-        );
+/// The flights' plan (`world.txt`) and what ground truth says of it.
+fn scenario(world: &World, truth: &[Option<Trajectory>]) -> Scenario {
+    let get = |key: &str| {
+        world
+            .description
+            .iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, v)| v.clone())
+    };
+    let n = world.robots();
+    let names: Vec<String> = (0..n).map(|r| robot_name(r).to_string()).collect();
+    let tracks: Vec<(&[f64], &[SE3])> = truth
+        .iter()
+        .flatten()
+        .map(|t| (t.timestamps(), t.poses()))
+        .collect();
+    let counts = crate::flights::overlap_counts_of(&tracks);
+    let rows = |path: Option<&PathBuf>, kind: &str| {
+        path.and_then(|p| std::fs::read_to_string(p).ok())
+            .map_or(0, |t| {
+                t.lines()
+                    .skip(1)
+                    .filter(|l| l.trim_end().ends_with(kind))
+                    .count()
+            })
+    };
+    Scenario {
+        plan: get("plan").unwrap_or_else(|| {
+            if world.description.is_empty() {
+                "dataset".into()
+            } else {
+                "designed".into()
+            }
+        }),
+        speed_mps: get("speed_mps").and_then(|v| v.parse().ok()),
+        radio_range_m: get("radio_range_m").and_then(|v| v.parse().ok()),
+        roles: names
+            .iter()
+            .filter_map(|r| Some((r.clone(), get(&format!("role_{r}"))?)))
+            .collect(),
+        revisits: (0..counts.revisits.len().min(n))
+            .map(|r| {
+                let row = (0..n)
+                    .map(|q| (names[q].clone(), counts.revisits[r][q]))
+                    .collect();
+                (names[r].clone(), row)
+            })
+            .collect(),
+        crossings: (0..counts.crossings.len().min(n))
+            .map(|r| (names[r].clone(), counts.crossings[r].len()))
+            .collect(),
+        overlap_candidates: rows(world.closures_csv.as_ref(), ",overlap"),
+        aliased_candidates: rows(world.closures_csv.as_ref(), ",aliased"),
+        own_overlap_candidates: rows(world.revisits_csv.as_ref(), ",overlap"),
+        own_aliased_candidates: rows(world.revisits_csv.as_ref(), ",aliased"),
+        meetings_in_flight: world
+            .events
+            .iter()
+            .filter(|e| e.kind == crate::flights::RangeEventKind::Enter && e.time_s > 0.0)
+            .count(),
     }
-    let _ = writeln!(
-        t,
-        "| team | | | | {} | {} | | {} |\n",
-        m(s.team_ate_m),
-        m(s.centralized_ate_m),
-        if s.converged_at_base { "yes" } else { "no" }
-    );
-    let _ = writeln!(
-        t,
-        "Odometry alone and team estimate: each robot aligned on its own (SE(3)). Team frame: one alignment for every robot the distributed back-end put in the team's frame — what a shared map needs. Oracle: every robot's graph merged, the same PCM, Levenberg-Marquardt.\n"
-    );
-    let _ = writeln!(t, "![error over time](error.png)\n");
-    let c = &s.closures;
-    let _ = writeln!(t, "## Loop closures against the simulator's truth\n");
-    let _ = writeln!(
-        t,
-        "{} inter-robot closures verified (PnP-RANSAC): {} true, {} false ({} of them at aliased look-alikes). PCM inside the distributed back-end kept {} and left out {}.\n",
-        c.total, c.true_closures, c.false_closures, c.aliased, c.accepted, c.rejected
-    );
-    let _ = writeln!(t, "| | accepted | rejected |\n|---|---|---|");
-    let _ = writeln!(t, "| true | {} | {} |", c.true_accepted, c.true_rejected);
-    let _ = writeln!(t, "| false | {} | {} |", c.false_accepted, c.false_rejected);
-    let _ = writeln!(
-        t,
-        "| of which aliased | {} | {} |\n",
-        c.aliased_accepted,
-        c.aliased - c.aliased_accepted
-    );
-    let _ = writeln!(
-        t,
-        "True: the measurement agrees with the ground-truth relative pose within {TRUE_TRANSLATION_M} m and {TRUE_ROTATION_DEG}°. Aliased: within {ALIAS_FRAMES} frames of a pair `closures.csv` lists as two copies of one building.\n"
-    );
-    let _ = writeln!(
-        t,
-        "## Bandwidth (paper Table II layout, `doorslam bw`)\n\n```\n{bw_table}\n```\n"
-    );
-    let _ = writeln!(t, "![bytes over time](bytes.png)\n");
-    let _ = writeln!(
-        t,
-        "## Timeline\n\n| flight time (s) | event | robots |\n|---|---|---|"
-    );
-    for e in &s.timeline {
-        let _ = writeln!(
-            t,
-            "| {:.1} | {} | {} |",
-            e.t_s,
-            e.event,
-            e.robots.join(", ")
-        );
-    }
-    let _ = writeln!(
-        t,
-        "\nFiles: `summary.json` (these figures), `<robot>/` (robot.toml, robot.log, ledger.json, status.json, backend.json, odometry.tum, team_estimate.tum, graph.g2o, keyframes.csv, the journal, team.own), `world/` (the rendered flights and their truth). `doorslam bw --json <this folder>` reads the ledgers."
-    );
-    t
 }

@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 use crate::flights::robot_name;
 use crate::netns::Net;
 
+use super::cpu::CpuMeter;
 use super::{io_err, DemoError};
 
 /// Where a robot is.
@@ -33,6 +34,10 @@ pub struct RobotSnapshot {
     pub keyframes: u64,
     /// Meetings with any peer (the team link's sessions).
     pub rendezvous: u64,
+    /// Meetings per peer.
+    pub meetings: std::collections::BTreeMap<String, u64>,
+    /// Peers the team link sees now.
+    pub present: Vec<String>,
     /// Inter-robot closures the back-end took, and those PCM left out.
     pub closures: u64,
     pub rejected: u64,
@@ -79,6 +84,11 @@ impl Robot {
 
     pub fn name(&self) -> char {
         robot_name(self.index)
+    }
+
+    /// The process group of the running incarnation (`up`'s pid: it leads its group).
+    pub fn pgid(&self) -> Option<i32> {
+        self.child.as_ref().map(|c| c.id() as i32)
     }
 
     /// Starts `doorslam up` (in the robot's namespace when there is a network), in a
@@ -164,8 +174,9 @@ impl Robot {
     }
 
     /// SIGTERM to `up`, which stops the services in reverse start order (each drains its
-    /// queues and writes its files); SIGKILL to the group after `grace`.
-    pub fn stop(&mut self) -> Result<(), DemoError> {
+    /// queues and writes its files); SIGKILL to the group after `grace`. Once `up` has
+    /// exited, and before it is reaped, `meter` reads its exact CPU total.
+    pub fn stop(&mut self, meter: &mut CpuMeter) -> Result<(), DemoError> {
         let grace = Duration::from_secs(20);
         if let Some(mut child) = self.child.take() {
             let pid = child.id() as i32;
@@ -173,6 +184,11 @@ impl Robot {
             unsafe { libc::kill(pid, libc::SIGTERM) };
             let deadline = Instant::now() + grace;
             loop {
+                if exited_unreaped(pid) {
+                    meter.exited(self.index, pid);
+                    let _ = child.wait();
+                    break;
+                }
                 match child.try_wait() {
                     Ok(Some(_)) | Err(_) => break,
                     Ok(None) if Instant::now() >= deadline => {
@@ -196,16 +212,28 @@ impl Robot {
         let frontend = read_json(&self.dir.join("frontend.json"));
         let u = |v: Option<&serde_json::Value>| v.and_then(|x| x.as_u64()).unwrap_or(0);
         let b = backend.as_ref();
-        let rendezvous = team
+        let meetings: std::collections::BTreeMap<String, u64> = team
             .as_ref()
             .and_then(|t| t.get("peers"))
             .and_then(|p| p.as_object())
-            .map_or(0, |peers| {
+            .map(|peers| {
                 peers
-                    .values()
-                    .map(|p| u(p.pointer("/stats/meetings")))
-                    .sum()
-            });
+                    .iter()
+                    .map(|(name, p)| (name.clone(), u(p.pointer("/stats/meetings"))))
+                    .collect()
+            })
+            .unwrap_or_default();
+        let rendezvous = meetings.values().sum();
+        let present = team
+            .as_ref()
+            .and_then(|t| t.get("present"))
+            .and_then(|p| p.as_array())
+            .map(|p| {
+                p.iter()
+                    .filter_map(|x| x.as_str().map(String::from))
+                    .collect()
+            })
+            .unwrap_or_default();
         RobotSnapshot {
             name: self.name(),
             state: self.state,
@@ -219,6 +247,8 @@ impl Robot {
                 .and_then(|x| x.as_u64()),
             keyframes: u(b.and_then(|b| b.get("keyframes"))),
             rendezvous,
+            meetings,
+            present,
             closures: u(b.and_then(|b| b.get("closures"))),
             rejected: b
                 .and_then(|b| b.pointer("/team/rejected_closures"))
@@ -245,15 +275,20 @@ pub fn ledger_bytes_sent(path: &Path) -> u64 {
     })
 }
 
-/// CPU seconds (user + system) of every child process that ended and was waited for,
-/// their own children included.
-pub fn children_cpu_s() -> f64 {
-    // SAFETY: getrusage fills the struct it is given; zeroed is a valid initial value.
-    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
-    // SAFETY: a valid pointer to a rusage, RUSAGE_CHILDREN is a valid `who`.
-    if unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut usage) } != 0 {
-        return 0.0;
-    }
-    let s = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
-    s(usage.ru_utime) + s(usage.ru_stime)
+/// Whether our child `pid` has exited, leaving it unreaped (its zombie's `/proc` entry
+/// still holds its CPU times and its waited-for children's).
+fn exited_unreaped(pid: i32) -> bool {
+    // SAFETY: zeroed is a valid siginfo_t; waitid only writes into it.
+    let mut info: libc::siginfo_t = unsafe { std::mem::zeroed() };
+    // SAFETY: waits for our own child without reaping it (WNOWAIT) and without blocking.
+    let rc = unsafe {
+        libc::waitid(
+            libc::P_PID,
+            pid as libc::id_t,
+            &mut info,
+            libc::WEXITED | libc::WNOWAIT | libc::WNOHANG,
+        )
+    };
+    // SAFETY: si_pid is valid to read for a filled WEXITED siginfo; 0 when none exited.
+    rc == 0 && unsafe { info.si_pid() } == pid
 }

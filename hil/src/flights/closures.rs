@@ -51,7 +51,8 @@ impl ClosureKind {
     }
 }
 
-/// A frame of robot `robot_a` and a frame of robot `robot_b` (`robot_a < robot_b`).
+/// A frame of robot `robot_a` and a frame of robot `robot_b`: `robot_a < robot_b` between
+/// drones, `robot_a == robot_b` for a drone's own ([`own_candidates`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub struct ClosureCandidate {
     pub robot_a: usize,
@@ -120,7 +121,7 @@ pub fn seen_buildings(world: &World, camera: &StereoCamera, pose: &Isometry3<f64
 }
 
 /// Distance (metres) if the two camera poses overlap, `None` otherwise.
-fn overlap_distance(a: &Isometry3<f64>, b: &Isometry3<f64>) -> Option<f64> {
+pub(crate) fn overlap_distance(a: &Isometry3<f64>, b: &Isometry3<f64>) -> Option<f64> {
     let distance = (a.translation.vector - b.translation.vector).norm();
     let (za, zb) = (a.rotation * Vector3::z(), b.rotation * Vector3::z());
     let angle = za.dot(&zb).clamp(-1.0, 1.0).acos();
@@ -133,6 +134,27 @@ pub fn closure_candidates(
     camera: &StereoCamera,
     flights: &[Flight],
 ) -> Vec<ClosureCandidate> {
+    all_candidates(world, camera, flights).0
+}
+
+/// Every drone's candidates with its own earlier frames, at least
+/// [`MIN_OWN_GAP_S`](super::MIN_OWN_GAP_S) earlier: `robot_a == robot_b`, `frame_a` the
+/// later frame, `frame_b` the earlier one (the closest match, once per kind).
+pub fn own_candidates(
+    world: &World,
+    camera: &StereoCamera,
+    flights: &[Flight],
+) -> Vec<ClosureCandidate> {
+    all_candidates(world, camera, flights).1
+}
+
+/// Candidates between drones, and of each drone with itself (one pass over what every
+/// frame sees).
+pub(crate) fn all_candidates(
+    world: &World,
+    camera: &StereoCamera,
+    flights: &[Flight],
+) -> (Vec<ClosureCandidate>, Vec<ClosureCandidate>) {
     let designs = repeated_designs(world);
     let design_of: BTreeMap<usize, usize> = designs
         .iter()
@@ -153,67 +175,108 @@ pub fn closure_candidates(
                 .collect()
         })
         .collect();
-    let corner = |b: usize| {
-        world
+    let pairs = Pairs {
+        world,
+        designs: &designs,
+        design_of: &design_of,
+        seen: &seen,
+        flights,
+    };
+    let mut between = Vec::new();
+    let mut own = Vec::new();
+    for a in 0..flights.len() {
+        for b in a + 1..flights.len() {
+            between.extend(pairs.candidates(a, b, None));
+        }
+        own.extend(pairs.candidates(a, a, Some(super::MIN_OWN_GAP_S)));
+    }
+    between.sort();
+    own.sort();
+    (between, own)
+}
+
+/// What candidate search between two drones shares.
+struct Pairs<'a> {
+    world: &'a World,
+    designs: &'a [Vec<usize>],
+    design_of: &'a BTreeMap<usize, usize>,
+    /// Per robot and frame: seen buildings that have copies.
+    seen: &'a [Vec<Vec<usize>>],
+    flights: &'a [Flight],
+}
+
+impl Pairs<'_> {
+    /// Translation taking building `b`'s corner to the origin: poses relative to a copy.
+    fn corner(&self, b: usize) -> Option<Translation3<f64>> {
+        self.world
             .buildings()
             .get(b)
             .map(|x| Translation3::from(-x.bounds().min.coords))
-    };
-    let mut out = Vec::new();
-    for (a, fa) in flights.iter().enumerate() {
-        for (b, fb) in flights.iter().enumerate().skip(a + 1) {
-            // Frames of b per building they see, to look aliases up directly.
-            let mut frames_seeing: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
-            for (j, s) in seen[b].iter().enumerate() {
-                for &building in s {
-                    frames_seeing.entry(building).or_default().push(j);
-                }
+    }
+
+    /// For each frame of `a`, the closest matching frame of `b` per kind; with
+    /// `earlier_by`, only frames of `b` at least that many seconds earlier (own
+    /// candidates, `a == b`).
+    fn candidates(&self, a: usize, b: usize, earlier_by: Option<f64>) -> Vec<ClosureCandidate> {
+        let (fa, fb) = (&self.flights[a], &self.flights[b]);
+        let usable =
+            |i: usize, j: usize| earlier_by.is_none_or(|gap| fb.times[j] <= fa.times[i] - gap);
+        // Frames of b per building they see, to look aliases up directly.
+        let mut frames_seeing: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
+        for (j, s) in self.seen[b].iter().enumerate() {
+            for &building in s {
+                frames_seeing.entry(building).or_default().push(j);
             }
-            for (i, pa) in fa.poses.iter().enumerate() {
-                let closest = |candidates: &mut dyn Iterator<Item = (usize, f64)>| {
-                    candidates
-                        .min_by(|x, y| x.1.total_cmp(&y.1))
-                        .map(|(j, _)| j)
+        }
+        let mut out = Vec::new();
+        for (i, pa) in fa.poses.iter().enumerate() {
+            let closest = |candidates: &mut dyn Iterator<Item = (usize, f64)>| {
+                candidates
+                    .min_by(|x, y| x.1.total_cmp(&y.1))
+                    .map(|(j, _)| j)
+            };
+            let overlap = closest(
+                &mut fb
+                    .poses
+                    .iter()
+                    .enumerate()
+                    .filter(|(j, _)| usable(i, *j))
+                    .filter_map(|(j, pb)| Some((j, overlap_distance(pa, pb)?))),
+            );
+            if let Some(j) = overlap {
+                out.push(candidate(a, i, b, j, ClosureKind::Overlap));
+            }
+            let mut aliases = Vec::new();
+            for &copy_a in &self.seen[a][i] {
+                let Some((design, Some(to_a))) = self
+                    .design_of
+                    .get(&copy_a)
+                    .map(|&d| (d, self.corner(copy_a)))
+                else {
+                    continue;
                 };
-                let overlap = closest(
-                    &mut fb
-                        .poses
-                        .iter()
-                        .enumerate()
-                        .filter_map(|(j, pb)| Some((j, overlap_distance(pa, pb)?))),
-                );
-                if let Some(j) = overlap {
-                    out.push(candidate(a, i, b, j, ClosureKind::Overlap));
-                }
-                let mut aliases = Vec::new();
-                for &copy_a in &seen[a][i] {
-                    let Some((design, Some(to_a))) =
-                        design_of.get(&copy_a).map(|&d| (d, corner(copy_a)))
-                    else {
+                let local_a = to_a * pa;
+                for &copy_b in self.designs[design].iter().filter(|&&c| c != copy_a) {
+                    let Some(to_b) = self.corner(copy_b) else {
                         continue;
                     };
-                    let local_a = to_a * pa;
-                    for &copy_b in designs[design].iter().filter(|&&c| c != copy_a) {
-                        let Some(to_b) = corner(copy_b) else { continue };
-                        for &j in frames_seeing.get(&copy_b).into_iter().flatten() {
-                            let pb = &fb.poses[j];
-                            if overlap_distance(pa, pb).is_some() {
-                                continue;
-                            }
-                            if let Some(d) = overlap_distance(&local_a, &(to_b * pb)) {
-                                aliases.push((j, d));
-                            }
+                    for &j in frames_seeing.get(&copy_b).into_iter().flatten() {
+                        let pb = &fb.poses[j];
+                        if !usable(i, j) || overlap_distance(pa, pb).is_some() {
+                            continue;
+                        }
+                        if let Some(d) = overlap_distance(&local_a, &(to_b * pb)) {
+                            aliases.push((j, d));
                         }
                     }
                 }
-                if let Some(j) = closest(&mut aliases.into_iter()) {
-                    out.push(candidate(a, i, b, j, ClosureKind::Aliased));
-                }
+            }
+            if let Some(j) = closest(&mut aliases.into_iter()) {
+                out.push(candidate(a, i, b, j, ClosureKind::Aliased));
             }
         }
+        out
     }
-    out.sort();
-    out
 }
 
 fn candidate(a: usize, i: usize, b: usize, j: usize, kind: ClosureKind) -> ClosureCandidate {

@@ -8,19 +8,30 @@
 //! direction, pitched down by `pitch_down_deg` so street, facades and a strip of sky
 //! are all in view.
 //!
-//! Routes are designed (see the `plan` module) so the default 5-drone team has true
-//! overlaps (a drone sees again what another saw a few seconds earlier) and perceptual
-//! aliases (two drones see different copies of one repeated building from the same
-//! relative viewpoint): [`closure_candidates`] lists both. Everything is a pure function
-//! of the world and [`FlightConfig`].
+//! Two plans ([`FlightPlan`]):
+//! - **designed** (`sim world`'s default, see the `plan` module): the default 5-drone team
+//!   has true overlaps (a drone sees again what another saw a few seconds earlier) and
+//!   perceptual aliases (two drones see different copies of one repeated building from the
+//!   same relative viewpoint);
+//! - **sectors** (the demo's scenario, see the `sectors` module): every drone patrols the
+//!   loop around its own sector of the town, neighbouring loops share a street flown the
+//!   same way, so every drone re-visits places another drone saw, several times, and its
+//!   own places a lap later.
+//!
+//! [`closure_candidates`] lists true overlaps and aliases between drones,
+//! [`own_candidates`] a drone's own, [`overlap_counts`] counts the stretches of every
+//! drone's flight over places others (or itself) saw. Everything is a pure function of the
+//! world and [`FlightConfig`].
 
 mod closures;
 mod imaging;
 mod output;
+mod overlaps;
 mod plan;
 mod rendezvous;
 mod resolution;
 mod route;
+mod sectors;
 
 use std::path::PathBuf;
 
@@ -31,15 +42,19 @@ use crate::error::HilError;
 use crate::world::World;
 
 pub use closures::{
-    closure_candidates, repeated_designs, seen_buildings, ClosureCandidate, ClosureKind,
-    OVERLAP_MAX_ANGLE_DEG, OVERLAP_RADIUS_M, SEEN_FRACTION, SEEN_MAX_DEPTH_M,
+    closure_candidates, own_candidates, repeated_designs, seen_buildings, ClosureCandidate,
+    ClosureKind, OVERLAP_MAX_ANGLE_DEG, OVERLAP_RADIUS_M, SEEN_FRACTION, SEEN_MAX_DEPTH_M,
 };
 pub use imaging::TeamCamera;
 pub use output::{robot_name, write_team, Progress};
+pub use overlaps::{
+    overlap_counts, overlap_counts_of, OverlapCounts, Revisit, MIN_OWN_GAP_S, STRETCH_GAP_S,
+};
 pub use plan::FOLLOWER_LEAD_M;
 pub use rendezvous::{rendezvous_events, RangeEvent, RangeEventKind};
 pub use resolution::camera_for_resolution;
 pub use route::CORNER_RADIUS_M;
+pub use sectors::{Sector, MIN_LAPS, MIN_MEETING_S, MIN_SEPARATION_M, SPEED_SPREAD};
 
 /// Most drones a team can have: robots are named `a` to `z`.
 pub const MAX_ROBOTS: usize = doorslam_geometry::key::MAX_ROBOTS as usize;
@@ -67,6 +82,26 @@ pub enum FlightError {
     Hil(#[from] HilError),
 }
 
+/// How the drones' routes are planned.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum FlightPlan {
+    /// Groups of three: anchor, follower, alias partner, then random walks (`plan`).
+    #[default]
+    Designed,
+    /// Every drone patrols its own sector; neighbouring sectors share a street (`sectors`).
+    Sectors,
+}
+
+impl FlightPlan {
+    /// `designed` or `sectors`, as `world.txt` and `--plan` spell it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            FlightPlan::Designed => "designed",
+            FlightPlan::Sectors => "sectors",
+        }
+    }
+}
+
 /// What to fly. `Default` is the 5-drone, 30-second team of `doorslam sim world`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FlightConfig {
@@ -74,7 +109,8 @@ pub struct FlightConfig {
     /// Frames per robot.
     pub frames: usize,
     pub rate_hz: f64,
-    /// Mean horizontal speed; each drone flies at 85–115 % of it.
+    /// Horizontal speed. Designed plan: the mean, each drone flies at 85–115 % of it;
+    /// sectors: the slowest drone's, each flies at 100 % to 100 + 100 × [`SPEED_SPREAD`] %.
     pub speed_mps: f64,
     pub min_altitude_m: f64,
     pub max_altitude_m: f64,
@@ -82,6 +118,7 @@ pub struct FlightConfig {
     pub pitch_down_deg: f64,
     pub radio_range_m: f64,
     pub seed: u64,
+    pub plan: FlightPlan,
 }
 
 impl Default for FlightConfig {
@@ -96,6 +133,7 @@ impl Default for FlightConfig {
             pitch_down_deg: 12.0,
             radio_range_m: 30.0,
             seed: 1,
+            plan: FlightPlan::Designed,
         }
     }
 }
@@ -186,6 +224,11 @@ pub enum FlightRole {
     AliasPartner { partner_of: usize, building: usize },
     /// A random walk (the world has no repeated designs to aim at).
     Wanderer,
+    /// Patrols the loop around `sector`; placed next to `parent`'s sector.
+    Patrol {
+        sector: Sector,
+        parent: Option<usize>,
+    },
 }
 
 impl std::fmt::Display for FlightRole {
@@ -208,6 +251,13 @@ impl std::fmt::Display for FlightRole {
                 robot_name(partner_of)
             ),
             FlightRole::Wanderer => write!(f, "random walk"),
+            FlightRole::Patrol { sector, parent } => {
+                write!(f, "patrol of the {sector}")?;
+                match parent {
+                    Some(p) => write!(f, ", next to {}", robot_name(p)),
+                    None => Ok(()),
+                }
+            }
         }
     }
 }
@@ -265,6 +315,8 @@ pub struct TeamFlight {
     pub flights: Vec<Flight>,
     pub events: Vec<RangeEvent>,
     pub closures: Vec<ClosureCandidate>,
+    /// Each drone's candidates with its own earlier frames ([`own_candidates`]).
+    pub own: Vec<ClosureCandidate>,
 }
 
 impl TeamFlight {
@@ -293,7 +345,11 @@ pub fn heading_pose(eye: nalgebra::Point3<f64>, yaw: f64, pitch: f64) -> Isometr
 pub fn fly_team(world: &World, config: &FlightConfig) -> Result<Vec<Flight>, FlightError> {
     config.validate()?;
     let pitch = config.pitch_down_deg.to_radians();
-    let flights = plan::plan_routes(world, config)
+    let routes = match config.plan {
+        FlightPlan::Designed => plan::plan_routes(world, config),
+        FlightPlan::Sectors => sectors::plan_sectors(world, config),
+    };
+    let flights = routes
         .into_iter()
         .map(|route| {
             let times: Vec<f64> = (0..config.frames).map(|k| config.time_of(k)).collect();
@@ -341,12 +397,13 @@ pub fn simulate_team(
 ) -> Result<TeamFlight, FlightError> {
     let flights = fly_team(world, config)?;
     let events = rendezvous_events(&flights, config.radio_range_m);
-    let closures = closure_candidates(world, camera, &flights);
+    let (closures, own) = closures::all_candidates(world, camera, &flights);
     Ok(TeamFlight {
         config: config.clone(),
         camera: *camera,
         flights,
         events,
         closures,
+        own,
     })
 }

@@ -6,6 +6,8 @@
 //!                       camera model and its settings
 //! <dir>/events.csv      time_s,event,robot_a,robot_b        (enter / leave)
 //! <dir>/closures.csv    robot_a,frame_a,robot_b,frame_b,kind (overlap / aliased)
+//! <dir>/revisits.csv    robot,frame,earlier_frame,kind        (a drone's own: overlap /
+//!                       aliased with its frame at least 20 s earlier)
 //! <dir>/exposures.csv   robot,frame,time_s,exposure_ms,gain,light,brightness,shade
 //!                       (realistic camera only: what the auto-exposure did per frame)
 //! <dir>/<r>/image_0/NNNNNN.png, image_1/NNNNNN.png, times.txt, calib.txt,
@@ -115,8 +117,23 @@ fn world_description(world: &World, team: &TeamFlight, model: &CameraModel) -> S
         format!("min_altitude_m = {:e}", cfg.min_altitude_m),
         format!("max_altitude_m = {:e}", cfg.max_altitude_m),
         format!("pitch_down_deg = {:e}", cfg.pitch_down_deg),
+        format!("plan = \"{}\"", cfg.plan.as_str()),
         format!("overlap_candidates = {}", team.count(ClosureKind::Overlap)),
         format!("aliased_candidates = {}", team.count(ClosureKind::Aliased)),
+        format!(
+            "own_overlap_candidates = {}",
+            team.own
+                .iter()
+                .filter(|c| c.kind == ClosureKind::Overlap)
+                .count()
+        ),
+        format!(
+            "own_aliased_candidates = {}",
+            team.own
+                .iter()
+                .filter(|c| c.kind == ClosureKind::Aliased)
+                .count()
+        ),
         format!("rendezvous_events = {}", team.events.len()),
     ];
     for line in lines {
@@ -135,6 +152,22 @@ fn world_description(world: &World, team: &TeamFlight, model: &CameraModel) -> S
             robot_name(r),
             f.role,
             f.speed_mps
+        );
+    }
+    // Stretches of each flight over places others saw before, and over its own.
+    let counts = super::overlap_counts(&team.flights);
+    for r in 0..team.flights.len() {
+        let others: Vec<String> = (0..team.flights.len())
+            .filter(|&q| q != r)
+            .map(|q| format!("{} {}", robot_name(q), counts.revisits[r][q]))
+            .collect();
+        let _ = writeln!(
+            s,
+            "revisits_{} = \"own {}, {}; crossings {}\"",
+            robot_name(r),
+            counts.own_revisited(r),
+            others.join(", "),
+            counts.crossings[r].len()
         );
     }
     s
@@ -223,6 +256,18 @@ pub fn write_team(
         );
     }
     write_text(dir.join("closures.csv"), &closures)?;
+    let mut own = String::from("robot,frame,earlier_frame,kind\n");
+    for c in &team.own {
+        let _ = writeln!(
+            own,
+            "{},{},{},{}",
+            robot_name(c.robot_a),
+            c.frame_a,
+            c.frame_b,
+            c.kind.as_str()
+        );
+    }
+    write_text(dir.join("revisits.csv"), &own)?;
     write_text(
         dir.join("world.txt"),
         &world_description(world, team, model),

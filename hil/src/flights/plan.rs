@@ -31,7 +31,7 @@ use super::{FlightConfig, FlightRole};
 pub const FOLLOWER_LEAD_M: f64 = 20.0;
 
 /// Largest altitude swing around a drone's cruise altitude (metres).
-const MAX_ALTITUDE_SWING_M: f64 = 1.5;
+pub(crate) const MAX_ALTITUDE_SWING_M: f64 = 1.5;
 /// Horizontal distance over which the altitude goes through one full swing (metres).
 const ALTITUDE_WAVELENGTH_M: f64 = 90.0;
 
@@ -68,9 +68,9 @@ fn pass_of(lot: Node, choice: usize) -> Option<Pass> {
 /// Smooth altitude over the horizontal arc length: a sinusoid around a cruise height.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct Altitude {
-    base: f64,
-    swing: f64,
-    phase: f64,
+    pub(crate) base: f64,
+    pub(crate) swing: f64,
+    pub(crate) phase: f64,
 }
 
 impl Altitude {

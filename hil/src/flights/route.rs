@@ -138,6 +138,19 @@ impl Path {
         self.length
     }
 
+    /// The straight pieces: (arc length where each starts, its length, start point, unit
+    /// direction). A straight run through several intersections is one piece.
+    pub(crate) fn straight_pieces(&self) -> Vec<(f64, f64, Point2<f64>, Vector2<f64>)> {
+        let mut out = Vec::new();
+        for (k, (start, piece)) in self.pieces.iter().enumerate() {
+            if let Piece::Line { from, dir } = piece {
+                let end = self.pieces.get(k + 1).map_or(self.length, |p| p.0);
+                out.push((*start, end - start, *from, *dir));
+            }
+        }
+        out
+    }
+
     /// Position and heading (radians from +x, counter-clockwise) at arc length `s`,
     /// clamped to the path; `None` for an empty path.
     pub(crate) fn sample(&self, s: f64) -> Option<(Point2<f64>, f64)> {

@@ -11,7 +11,7 @@ use serde::Deserialize;
 pub mod capture;
 pub mod replay;
 
-pub use replay::ReplayReport;
+pub use replay::{ReplayReport, ReplayStatus};
 
 /// Failures of the camera service.
 #[derive(Debug, thiserror::Error)]
@@ -70,6 +70,11 @@ pub struct ReplayConfig {
     /// resumes where the flight is now. Absent: play from the first frame at start.
     #[serde(default)]
     pub start_unix_ms: Option<u64>,
+    /// A JSON file the replay keeps current (every second and at the end): frames
+    /// published and skipped, and how late frames went out after their due time — the
+    /// camera's share of the real-time check of a run ([`replay::ReplayStatus`]).
+    #[serde(default)]
+    pub status_file: Option<PathBuf>,
 }
 
 fn default_rate() -> f64 {

@@ -20,6 +20,60 @@ pub struct ReplayReport {
     pub skipped: u64,
 }
 
+/// What the replay's status file says (`[camera.replay] status_file`).
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ReplayStatus {
+    /// Frames in the dataset (or its part).
+    pub frames: u64,
+    pub published: u64,
+    /// Frames skipped because their time had passed by more than a frame period (a
+    /// replay that starts late or falls behind: what a camera loses while the machine
+    /// cannot keep up).
+    pub skipped: u64,
+    /// How long after its due time each published frame went out (ms): median, 90th
+    /// percentile, largest. 0 without a clock.
+    pub late_ms_median: f64,
+    pub late_ms_p90: f64,
+    pub late_ms_max: f64,
+    /// The replay has played its last frame.
+    pub finished: bool,
+}
+
+impl ReplayStatus {
+    fn new(frames: usize, report: &ReplayReport, late_ms: &[f64], finished: bool) -> Self {
+        let mut sorted = late_ms.to_vec();
+        sorted.sort_by(f64::total_cmp);
+        let at = |q: f64| {
+            if sorted.is_empty() {
+                0.0
+            } else {
+                sorted[((sorted.len() - 1) as f64 * q).round() as usize]
+            }
+        };
+        ReplayStatus {
+            frames: frames as u64,
+            published: report.published,
+            skipped: report.skipped,
+            late_ms_median: at(0.5),
+            late_ms_p90: at(0.9),
+            late_ms_max: sorted.last().copied().unwrap_or(0.0),
+            finished,
+        }
+    }
+
+    /// Writes the file whole (a temporary file renamed over it: readers never see half).
+    fn write(&self, path: &std::path::Path) {
+        let tmp = path.with_extension("json.tmp");
+        let text = serde_json::to_string_pretty(self).unwrap_or_default();
+        if std::fs::write(&tmp, text)
+            .and_then(|_| std::fs::rename(&tmp, path))
+            .is_err()
+        {
+            tracing::warn!(path = %path.display(), "replay: cannot write the status file");
+        }
+    }
+}
+
 /// The local instant of a wall-clock time in Unix milliseconds (past or future).
 fn instant_of_unix_ms(unix_ms: u64) -> Instant {
     let now_ms = std::time::SystemTime::now()
@@ -76,7 +130,15 @@ pub fn run(
     };
     let t0 = dataset.frames.first().map_or(0, |f| f.stamp_ns);
     let mut report = ReplayReport::default();
+    let mut late_ms: Vec<f64> = Vec::new();
+    let mut last_status = Instant::now();
     for k in 0..dataset.len() {
+        if let Some(path) = &config.status_file {
+            if last_status.elapsed() >= Duration::from_secs(1) {
+                last_status = Instant::now();
+                ReplayStatus::new(dataset.len(), &report, &late_ms, false).write(path);
+            }
+        }
         if !lifecycle.keep_going(&node) {
             break;
         }
@@ -133,6 +195,16 @@ pub fn run(
         };
         sender.send_with(|slot| StereoFrame::write(slot, header, &pair.left, &pair.right))?;
         report.published += 1;
+        if clocked {
+            let due = f.stamp_ns.saturating_sub(t0) as f64 * 1e-9 / config.rate;
+            let now = Instant::now()
+                .saturating_duration_since(start)
+                .as_secs_f64();
+            late_ms.push(((now - due) * 1e3).max(0.0));
+        }
+    }
+    if let Some(path) = &config.status_file {
+        ReplayStatus::new(dataset.len(), &report, &late_ms, true).write(path);
     }
     if report.skipped > 0 {
         tracing::warn!(
