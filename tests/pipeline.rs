@@ -4,15 +4,16 @@
 //! temporary folder, and bounds every wait.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::sync::{Arc, Mutex};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use doorslam_backend::journal::{Entry, Journal};
 use doorslam_ipc::{
     create_node, Feature, Keyframe, KeyframeSource, OdometryEdge, Sender, Topic,
     MAX_KEYFRAME_FEATURES,
 };
+
+mod common;
+use common::{signal, wait_exit, Guard, LogReader};
 
 const BIN: &str = env!("CARGO_BIN_EXE_doorslam");
 
@@ -42,71 +43,10 @@ fn write_dataset(dir: &Path, frames: usize) {
     std::fs::write(dir.join("poses.txt"), poses).unwrap();
 }
 
+/// Keyframe ids and the number of odometry edges in a back-end journal.
 fn keyframe_ids(journal: &Path) -> (Vec<u64>, usize) {
-    let Ok(r) = Journal::read(journal) else {
-        return (vec![], 0);
-    };
-    let ids = r
-        .entries
-        .iter()
-        .filter_map(|e| {
-            if let Entry::Keyframe { id, .. } = e {
-                Some(*id)
-            } else {
-                None
-            }
-        })
-        .collect();
-    let edges = r
-        .entries
-        .iter()
-        .filter(|e| matches!(e, Entry::Odometry { .. }))
-        .count();
-    (ids, edges)
-}
-
-/// Kills the process when dropped, so a failing test leaves no service running.
-struct Guard(Child);
-
-impl Drop for Guard {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-impl std::ops::Deref for Guard {
-    type Target = Child;
-    fn deref(&self) -> &Child {
-        &self.0
-    }
-}
-
-impl std::ops::DerefMut for Guard {
-    fn deref_mut(&mut self) -> &mut Child {
-        &mut self.0
-    }
-}
-
-fn signal(child: &Child, sig: i32) {
-    // SAFETY: kill(2) on our own child.
-    unsafe {
-        libc::kill(child.id() as libc::pid_t, sig);
-    }
-}
-
-fn wait_exit(child: &mut Child, limit: Duration) -> std::process::ExitStatus {
-    let deadline = Instant::now() + limit;
-    loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            return s;
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            panic!("process {} did not exit within {limit:?}", child.id());
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let (ids, edges) = common::journaled(journal);
+    (ids, edges.len())
 }
 
 /// `robot.toml` in `dir` for one robot: replay of `data` in real time, sim-keyframes every
@@ -142,64 +82,6 @@ fn start_up(config: &Path, extra: &[&str]) -> Guard {
             .spawn()
             .unwrap(),
     )
-}
-
-/// `doorslam up`'s stderr, read line by line as it comes, so a test waits for events in
-/// the log instead of guessing how long a loaded machine takes.
-struct LogReader {
-    text: Arc<Mutex<String>>,
-    reader: std::thread::JoinHandle<()>,
-}
-
-impl LogReader {
-    fn new(up: &mut Child) -> Self {
-        let text = Arc::new(Mutex::new(String::new()));
-        let (sink, stderr) = (text.clone(), up.stderr.take().unwrap());
-        let reader = std::thread::spawn(move || {
-            use std::io::BufRead;
-            for line in std::io::BufReader::new(stderr)
-                .lines()
-                .map_while(Result::ok)
-            {
-                let mut log = sink.lock().unwrap();
-                log.push_str(&line);
-                log.push('\n');
-            }
-        });
-        Self { text, reader }
-    }
-
-    fn text(&self) -> String {
-        self.text.lock().unwrap().clone()
-    }
-
-    /// Waits until every one of `needles` has appeared in the log (a needle listed twice
-    /// must appear twice).
-    fn wait_for(&self, needles: &[&str], timeout: Duration) {
-        let deadline = Instant::now() + timeout;
-        loop {
-            let log = self.text();
-            let seen = needles
-                .iter()
-                .all(|n| log.matches(n).count() >= needles.iter().filter(|m| *m == n).count());
-            if seen {
-                return;
-            }
-            assert!(
-                Instant::now() < deadline,
-                "never saw {needles:?} in the log:\n{log}"
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-
-    /// The whole log, once `up` has exited.
-    fn finish(self) -> String {
-        let Self { text, reader } = self;
-        reader.join().unwrap();
-        let log = text.lock().unwrap().clone();
-        log
-    }
 }
 
 #[test]

@@ -8,12 +8,14 @@
 //! (real-time VO on a shared 2-core machine).
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::sync::{Arc, Mutex};
+use std::process::{Command, Stdio};
+use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
-use doorslam_backend::journal::{Entry, Journal};
 use doorslam_geometry::SE3;
+
+mod common;
+use common::{signal, wait_exit, Guard, LogReader};
 
 const BIN: &str = env!("CARGO_BIN_EXE_doorslam");
 /// KITTI's frame period without times.txt (the dataset reader's 10 Hz).
@@ -28,34 +30,6 @@ fn data_dir() -> PathBuf {
         .join("stereo/kitti06_0000-0050")
 }
 
-/// Kills `doorslam up` (and with it, by PDEATHSIG, its services) if the test fails.
-struct Guard(Child);
-
-impl Drop for Guard {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// `doorslam up`'s stderr, collected as it comes.
-fn collect_log(up: &mut Child) -> (Arc<Mutex<String>>, std::thread::JoinHandle<()>) {
-    let text = Arc::new(Mutex::new(String::new()));
-    let (sink, stderr) = (text.clone(), up.stderr.take().unwrap());
-    let reader = std::thread::spawn(move || {
-        use std::io::BufRead;
-        for line in std::io::BufReader::new(stderr)
-            .lines()
-            .map_while(Result::ok)
-        {
-            let mut log = sink.lock().unwrap();
-            log.push_str(&line);
-            log.push('\n');
-        }
-    });
-    (text, reader)
-}
-
 /// What a run left behind.
 struct Outcome {
     log: String,
@@ -66,16 +40,6 @@ struct Outcome {
     /// Keyframe ids and odometry edges (from, to) in the back-end's journal.
     keyframes: Vec<u64>,
     edges: Vec<(u64, u64)>,
-}
-
-/// Keyframe ids in a back-end journal.
-fn journaled_keyframes(journal: &Path) -> usize {
-    Journal::read(journal).map_or(0, |r| {
-        r.entries
-            .iter()
-            .filter(|e| matches!(e, Entry::Keyframe { .. }))
-            .count()
-    })
 }
 
 /// Runs camera (replay of `data`) → frontend → backend under `doorslam up` until the
@@ -119,19 +83,18 @@ fn run_pipeline(
             .spawn()
             .unwrap(),
     );
-    let (text, reader) = collect_log(&mut up.0);
+    let log = LogReader::new(&mut up);
     let deadline = Instant::now() + Duration::from_secs(120);
     let mut kill_at = kill_frontend_after;
     let done = |log: &str| {
         log.contains("replay: finished")
             && (kill_frontend_after.is_none() || log.matches("frontend: ready").count() == 2)
     };
-    while !done(&text.lock().unwrap()) {
-        if kill_at.is_some_and(|n| journaled_keyframes(&journal) >= n) {
+    while !done(&log.text()) {
+        if kill_at.is_some_and(|n| common::journaled(&journal).0.len() >= n) {
             kill_at = None;
-            let pid: i32 = text
-                .lock()
-                .unwrap()
+            let pid: i32 = log
+                .text()
                 .lines()
                 .find_map(|l| l.strip_prefix("[up] started frontend (pid "))
                 .and_then(|rest| rest.trim_end_matches(')').parse().ok())
@@ -140,30 +103,18 @@ fn run_pipeline(
             unsafe { libc::kill(pid, libc::SIGKILL) };
         }
         if let Some(status) = up.0.try_wait().unwrap() {
-            panic!(
-                "doorslam up exited early ({status}):\n{}",
-                text.lock().unwrap()
-            );
+            panic!("doorslam up exited early ({status}):\n{}", log.text());
         }
         assert!(
             Instant::now() < deadline,
             "the replay never finished:\n{}",
-            text.lock().unwrap()
+            log.text()
         );
         std::thread::sleep(Duration::from_millis(100));
     }
-    // SAFETY: kill(2) on our own child.
-    unsafe { libc::kill(up.0.id() as libc::pid_t, libc::SIGINT) };
-    let deadline = Instant::now() + Duration::from_secs(30);
-    let status = loop {
-        if let Some(s) = up.0.try_wait().unwrap() {
-            break s;
-        }
-        assert!(Instant::now() < deadline, "doorslam up did not stop");
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    reader.join().unwrap();
-    let log = text.lock().unwrap().clone();
+    signal(&up, libc::SIGINT);
+    let status = wait_exit(&mut up, Duration::from_secs(30));
+    let log = log.finish();
     assert!(status.success(), "doorslam up failed ({status}):\n{log}");
 
     let trajectory_path = state.join(robot).join("trajectory.tum");
@@ -178,17 +129,7 @@ fn run_pipeline(
         .collect();
     let status_path = run.join(robot).join("frontend.json");
     let status = serde_json::from_str(&std::fs::read_to_string(&status_path).unwrap()).unwrap();
-    let journal = Journal::read(&journal).unwrap();
-    let mut keyframes = Vec::new();
-    let mut edges = Vec::new();
-    for e in &journal.entries {
-        if let Entry::Keyframe { id, .. } = e {
-            keyframes.push(*id);
-        }
-        if let Entry::Odometry { from, to, .. } = e {
-            edges.push((*from, *to));
-        }
-    }
+    let (keyframes, edges) = common::journaled(&journal);
     Outcome {
         log,
         trajectory,

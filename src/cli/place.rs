@@ -11,7 +11,6 @@ use doorslam_place_recognition::bow::{
     default_vocabulary_path, keyframe_descriptors, orb_descriptors, Vocabulary, WIRE_DIM,
     WIRE_WHITENING,
 };
-use doorslam_place_recognition::chain_eval::{evaluate_chain, keyframe_features, ChainInput};
 use doorslam_place_recognition::describer::BOW_FEATURES;
 use doorslam_place_recognition::eval::{
     at_threshold, pr_curve, svg, threshold_at_precision, EvalSet, Keyframe,
@@ -21,6 +20,7 @@ use doorslam_place_recognition::matching::{
 };
 use doorslam_place_recognition::netvlad::default_model_path;
 use doorslam_place_recognition::{Describer, GrayImage, NetVlad};
+use doorslam_rendezvous::chain_eval::{evaluate_chain, keyframe_features, ChainInput};
 
 #[derive(Debug, Args)]
 pub struct PlaceArgs {

@@ -13,14 +13,14 @@
 //! - [`candidates`]: the candidate chain (top-k, distance bound, temporal confirmation);
 //! - [`projection`]: PCA to the 128-D wire form (the bag of words' wire form);
 //! - [`service`]: the `place-recognition` service (keyframes in, descriptors out);
-//! - [`eval`]: precision-recall of inter-robot matches against ground truth;
-//!   [`chain_eval`]: the candidate chain and PnP verification offline (`place eval --verify`);
+//! - [`eval`]: precision-recall of inter-robot matches against ground truth (the whole
+//!   chain with PnP verification, `place eval --verify`, is `doorslam-rendezvous`'s
+//!   `chain_eval`: it needs the front-end's verifier);
 //! - [`onnx`]: a small writer of ONNX files (tests build models without downloads);
 //!   [`model`]: a `[batch, d] -> [batch, d']` model and the onnxruntime environment.
 
 pub mod bow;
 pub mod candidates;
-pub mod chain_eval;
 pub mod describer;
 pub mod eval;
 pub mod image;

@@ -13,11 +13,13 @@
 //! - [`store`]: own keyframes' verification packets and descriptors kept on disk, so a
 //!   restarted robot still offers its keyframes from before the restart;
 //! - [`own_loops`]: the robot's own loop closures, through the same candidate chain and
-//!   PnP, to the back-end (PCM among them there).
+//!   PnP, to the back-end (PCM among them there);
+//! - [`chain_eval`]: the same chain offline against ground truth (`place eval --verify`).
 //!
 //! A crate of its own because it composes services (front-end, place recognition, team
 //! link) that do not depend on each other; only this glue does.
 
+pub mod chain_eval;
 pub mod own_loops;
 pub mod pieces;
 pub mod run;

@@ -28,9 +28,9 @@ use doorslam_ipc::wire::{
 };
 use serde::Serialize;
 
-use crate::candidates::{CandidateChain, ChainConfig, ChainStats};
-use crate::eval::EvalSet;
-use crate::index::MatchIndex;
+use doorslam_place_recognition::candidates::{CandidateChain, ChainConfig, ChainStats};
+use doorslam_place_recognition::eval::{EvalError, EvalSet};
+use doorslam_place_recognition::index::MatchIndex;
 
 /// A verified closure further than this from the truth is false (metres, degrees).
 pub const FALSE_M: f64 = 2.0;
@@ -291,10 +291,10 @@ pub fn keyframe_features(
     set: &EvalSet,
     vo: &doorslam_frontend::VoConfig,
     progress: &dyn Fn(usize, usize),
-) -> Result<(Vec<Vec<Feature>>, Vec<StereoCalibration>, f64), crate::eval::EvalError> {
+) -> Result<(Vec<Vec<Feature>>, Vec<StereoCalibration>, f64), EvalError> {
     let mut cameras: BTreeMap<String, (StereoCalibration, doorslam_frontend::StereoVo)> =
         BTreeMap::new();
-    let input = |path: &std::path::Path, msg: String| crate::eval::EvalError::Input {
+    let input = |path: &std::path::Path, msg: String| EvalError::Input {
         path: path.to_path_buf(),
         msg,
     };
@@ -336,10 +336,12 @@ pub fn keyframe_features(
             ));
         }
         let start = std::time::Instant::now();
-        let bad = |e: doorslam_frontend::FrontendError| input(&k.image, e.to_string());
+        let bad = |e: doorslam_vision::VisionError| input(&k.image, e.to_string());
         let left = doorslam_frontend::Gray::new(w as usize, h as usize, &left_px).map_err(bad)?;
         let right = doorslam_frontend::Gray::new(w as usize, h as usize, &right_px).map_err(bad)?;
-        let f = stereo.keyframe_features(&left, &right).map_err(bad)?;
+        let f = stereo
+            .keyframe_features(&left, &right)
+            .map_err(|e| input(&k.image, e.to_string()))?;
         seconds += start.elapsed().as_secs_f64();
         features.push(f);
         calibration.push(*calib);
