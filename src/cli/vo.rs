@@ -26,6 +26,11 @@ pub struct VoArgs {
     /// line per frame; a lost frame repeats the last estimated pose).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Also write the pairs as the odometry sees them (rectified for EuRoC) into this
+    /// folder in KITTI layout (image_0/, image_1/, calib.txt, times.txt, poses.txt), so
+    /// another odometry can run on exactly the same frames.
+    #[arg(long, value_name = "OUTDIR")]
+    pub export_rectified: Option<PathBuf>,
     /// Print one JSON object on stdout instead of a summary line.
     #[arg(long)]
     pub json: bool,
@@ -63,6 +68,12 @@ pub fn run(a: VoArgs) -> Result<()> {
     config.validate().context("odometry settings")?;
     let dataset = doorslam_dataset::Dataset::open(&a.dir)
         .with_context(|| format!("opening {}", a.dir.display()))?;
+    if let Some(out) = &a.export_rectified {
+        let n = dataset
+            .write_kitti_layout(out)
+            .with_context(|| format!("writing the rectified pairs to {}", out.display()))?;
+        eprintln!("vo: {n} rectified pairs written to {}", out.display());
+    }
     let step = dataset.len().div_ceil(10).max(1);
     let progress = |done: usize, total: usize| {
         if done.is_multiple_of(step) || done == total {
@@ -108,6 +119,13 @@ pub fn run(a: VoArgs) -> Result<()> {
             "lost_frames": s.lost_frames,
             "cpu_ms_per_frame_median": quantile(&report.cpu_ms_per_frame, 0.5).unwrap_or(0.0),
             "cpu_ms_per_frame_p90": quantile(&report.cpu_ms_per_frame, 0.9).unwrap_or(0.0),
+            "cpu_ms_per_frame_mean": report.cpu_ms_per_frame.iter().sum::<f64>() / report.cpu_ms_per_frame.len().max(1) as f64,
+            "cpu_ms_per_frame_by_stage": report
+                .stages
+                .entries()
+                .iter()
+                .map(|&(name, ms)| (name.to_string(), serde_json::Value::from(ms / s.frames.max(1) as f64)))
+                .collect::<serde_json::Map<_, _>>(),
             "edges": report.edges.len(),
             "ms_per_frame_mean": report.ms_per_frame.iter().sum::<f64>() / report.ms_per_frame.len().max(1) as f64,
             "load_ms_per_frame_median": quantile(&report.load_ms_per_frame, 0.5).unwrap_or(0.0),

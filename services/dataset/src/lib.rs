@@ -350,6 +350,71 @@ impl Dataset {
     }
 }
 
+impl Dataset {
+    /// Writes the pairs as stereo VO sees them (rectified when the folder is not) into
+    /// `out` as a KITTI-layout folder: `image_0/`, `image_1/` (renumbered 000000.png, ...),
+    /// `calib.txt` (the rectified `P0`, `P1`), `times.txt`, and `poses.txt` when the
+    /// dataset has ground truth: another odometry can then run on exactly these frames.
+    /// Returns the number of pairs written.
+    pub fn write_kitti_layout(&self, out: &Path) -> Result<usize, DatasetError> {
+        let stereo = self.stereo()?;
+        for d in ["image_0", "image_1"] {
+            let dir = out.join(d);
+            std::fs::create_dir_all(&dir).map_err(io(&dir))?;
+        }
+        let c = stereo.calibration;
+        let calib = format!(
+            "P0: {fx:e} 0 {cx:e} 0 0 {fy:e} {cy:e} 0 0 0 1 0\nP1: {fx:e} 0 {cx:e} {tx:e} 0 {fy:e} {cy:e} 0 0 0 1 0\n",
+            fx = c.fx,
+            fy = c.fy,
+            cx = c.cx,
+            cy = c.cy,
+            tx = -c.fx * c.baseline_m,
+        );
+        let path = out.join("calib.txt");
+        std::fs::write(&path, calib).map_err(io(&path))?;
+        let mut times = String::new();
+        let t0 = self.frames.first().map_or(0, |f| f.stamp_ns);
+        for (k, f) in self.frames.iter().enumerate() {
+            let pair = stereo.prepare(self.load(k)?)?;
+            let name = format!("{k:06}.png");
+            write_gray_png(
+                &out.join("image_0").join(&name),
+                pair.width,
+                pair.height,
+                &pair.left,
+            )?;
+            write_gray_png(
+                &out.join("image_1").join(&name),
+                pair.width,
+                pair.height,
+                &pair.right,
+            )?;
+            times.push_str(&format!(
+                "{:.9}\n",
+                f.stamp_ns.saturating_sub(t0) as f64 * 1e-9
+            ));
+        }
+        let path = out.join("times.txt");
+        std::fs::write(&path, times).map_err(io(&path))?;
+        if let Some(truth) = &self.truth {
+            let mut text = String::new();
+            for p in truth {
+                let m = p.to_homogeneous();
+                let row: Vec<String> = (0..3)
+                    .flat_map(|r| (0..4).map(move |c| (r, c)))
+                    .map(|(r, c)| format!("{:e}", m[(r, c)]))
+                    .collect();
+                text.push_str(&row.join(" "));
+                text.push('\n');
+            }
+            let path = out.join("poses.txt");
+            std::fs::write(&path, text).map_err(io(&path))?;
+        }
+        Ok(self.frames.len())
+    }
+}
+
 /// A dataset's stereo camera: the calibration of the pairs VO gets, and the rectifier raw
 /// pairs go through when the dataset is not rectified on disk (EuRoC).
 #[derive(Debug)]

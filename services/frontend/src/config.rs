@@ -72,7 +72,9 @@ pub struct VoConfig {
     pub min_inlier_fraction: f64,
     /// The pose must agree with the constant-velocity prediction within this rotation
     /// (degrees) and translation (m), each growing with the time since the last frame:
-    /// `bound × max(1, dt / 0.1 s)²` (a drone cannot change its motion faster).
+    /// `bound × max(1, dt / 0.1 s)²` (a drone cannot change its motion faster; measured on
+    /// simulated flights at 5-7 m/s: 99 % of frames within 4° and 8 cm). Not checked on a
+    /// segment's first frame, whose motion is unknown.
     pub max_prediction_error_deg: f64,
     pub max_prediction_error_m: f64,
     /// Keyframes in the local bundle adjustment's window (the oldest one is held fixed),
@@ -152,7 +154,7 @@ impl Default for VoConfig {
             klt_max_back_error_px: 1.0,
             min_inlier_fraction: 0.3,
             max_prediction_error_deg: 8.0,
-            max_prediction_error_m: 1.5,
+            max_prediction_error_m: 0.3,
             window_keyframes: 6,
             window_iterations: 6,
             search_radius_px: 20.0,

@@ -37,4 +37,4 @@ pub use error::FrontendError;
 pub use keyframe::{Feature, Keyframe, OdometryEdge, SegmentLink};
 pub use packet::{from_packet, to_packet, PacketError, MAX_PACKET_FEATURES};
 pub use verify::{verify, Rejection, Verified, VerifyConfig};
-pub use vo::{FrameResult, LostByReason, LostReason, StereoVo, TrackState, VoStats};
+pub use vo::{FrameResult, LostByReason, LostReason, StageCpu, StereoVo, TrackState, VoStats};

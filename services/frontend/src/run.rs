@@ -10,7 +10,7 @@ use doorslam_geometry::SE3;
 use crate::config::VoConfig;
 use crate::error::FrontendError;
 use crate::keyframe::{Keyframe, OdometryEdge, SegmentLink};
-use crate::vo::{StereoVo, TrackState, VoStats};
+use crate::vo::{StageCpu, StereoVo, TrackState, VoStats};
 use doorslam_vision::Gray;
 
 /// Failures of a dataset run.
@@ -38,6 +38,8 @@ pub struct RunReport {
     pub edges: Vec<OdometryEdge>,
     pub links: Vec<SegmentLink>,
     pub stats: VoStats,
+    /// CPU time of the odometry's stages over the run.
+    pub stages: StageCpu,
     /// Time of `StereoVo::process` per frame (ms), without decoding the images.
     pub ms_per_frame: Vec<f64>,
     /// CPU time of this thread in `StereoVo::process` per frame (ms): the cost on one core,
@@ -76,6 +78,7 @@ pub fn run_dataset(
         edges: Vec::new(),
         links: Vec::new(),
         stats: VoStats::default(),
+        stages: StageCpu::default(),
         ms_per_frame: Vec::with_capacity(n),
         cpu_ms_per_frame: Vec::with_capacity(n),
         load_ms_per_frame: Vec::with_capacity(n),
@@ -108,6 +111,7 @@ pub fn run_dataset(
         progress(k + 1, n);
     }
     report.stats = vo.stats();
+    report.stages = vo.stage_cpu();
     report.time_s = start.elapsed().as_secs_f64();
     Ok(report)
 }

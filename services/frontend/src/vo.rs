@@ -30,6 +30,7 @@ use crate::keyframe::{Feature, Keyframe, OdometryEdge, SegmentLink};
 use crate::map::{LocalMap, WindowEdge};
 use crate::motion::{estimate_motion, prediction_error, MotionSettings};
 use crate::refine::{with_shared_errors, Correspondence, Noise};
+use crate::run::thread_cpu_s;
 use crate::tracking::{track_landmarks, TrackSettings, TrackedPoint};
 
 /// Why the odometry could not estimate a frame's pose.
@@ -206,6 +207,50 @@ impl std::ops::Add for VoStats {
     }
 }
 
+/// CPU time (ms, this thread) spent in each stage over a run: where a frame's cost goes.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct StageCpu {
+    /// Image checks and the pyramid.
+    pub prepare_ms: f64,
+    /// KLT of the landmarks and their disparities.
+    pub track_ms: f64,
+    /// PnP-RANSAC, refinement, checks.
+    pub estimate_ms: f64,
+    /// Keyframe features (GFTT, ORB, stereo), new landmarks.
+    pub keyframe_ms: f64,
+    /// The window's bundle adjustment.
+    pub adjust_ms: f64,
+}
+
+impl StageCpu {
+    /// (name, ms) of every stage, in frame order.
+    pub fn entries(&self) -> [(&'static str, f64); 5] {
+        [
+            ("prepare", self.prepare_ms),
+            ("track", self.track_ms),
+            ("estimate", self.estimate_ms),
+            ("keyframe", self.keyframe_ms),
+            ("adjust", self.adjust_ms),
+        ]
+    }
+}
+
+/// A stopwatch on this thread's CPU clock.
+struct Lap(f64);
+
+impl Lap {
+    fn start() -> Self {
+        Self(thread_cpu_s())
+    }
+    /// Milliseconds since the last lap (or the start), and restarts.
+    fn lap(&mut self) -> f64 {
+        let now = thread_cpu_s();
+        let ms = (now - self.0) * 1e3;
+        self.0 = now;
+        ms
+    }
+}
+
 /// The keyframe the current frame's pose is estimated against.
 #[derive(Debug, Clone, Copy)]
 struct Reference {
@@ -224,6 +269,9 @@ struct Track {
     stamp_ns: u64,
     /// Body-frame velocity (tangent per second) of the last motion.
     velocity: Tangent,
+    /// False on a segment's first frame without a recent motion to carry over: the
+    /// prediction is then a guess, and a pose is not checked against it.
+    velocity_known: bool,
 }
 
 /// Where the last segment ended, to link the next one.
@@ -252,6 +300,7 @@ pub struct StereoVo {
     last_good: Option<LastGood>,
     next_keyframe: u64,
     stats: VoStats,
+    stages: StageCpu,
 }
 
 impl std::fmt::Debug for StereoVo {
@@ -305,11 +354,17 @@ impl StereoVo {
             last_good: None,
             next_keyframe: 0,
             stats: VoStats::default(),
+            stages: StageCpu::default(),
         })
     }
 
     pub fn stats(&self) -> VoStats {
         self.stats
+    }
+
+    /// CPU time per stage so far.
+    pub fn stage_cpu(&self) -> StageCpu {
+        self.stages
     }
 
     pub fn config(&self) -> &VoConfig {
@@ -346,6 +401,7 @@ impl StereoVo {
             .into());
         }
         self.stats.frames += 1;
+        let mut lap = Lap::start();
         let mut gap_reason = None;
         if let Some(track) = &self.track {
             let gap = seconds(track.stamp_ns, stamp_ns);
@@ -360,10 +416,12 @@ impl StereoVo {
                 || mean > self.config.max_mean_intensity
                 || std < self.config.min_intensity_std
             {
+                self.stages.prepare_ms += lap.lap();
                 return Ok(self.lost_frame(frame, LostReason::BadImage { mean, std }));
             }
         }
         self.current.build(left, self.klt.levels)?;
+        self.stages.prepare_ms += lap.lap();
         let mut result = match self.track.is_some() {
             true => self.track(frame, stamp_ns, left, right)?,
             false => self.initialize(frame, stamp_ns, left, right)?,
@@ -440,8 +498,10 @@ impl StereoVo {
         adjust: bool,
     ) -> Result<Option<(Reference, Keyframe, Option<WindowEdge>)>, FrontendError> {
         let (left, right) = images;
+        let mut lap = Lap::start();
         let features = self.extractor.extract(left, right)?;
         let stereo = stereo_points(&features);
+        self.stages.keyframe_ms += lap.lap();
         if stereo.len() < self.config.min_keyframe_points {
             return Ok(None);
         }
@@ -460,6 +520,7 @@ impl StereoVo {
             ),
             false => None,
         };
+        self.stages.adjust_ms += lap.lap();
         let pose = self.map.newest_pose().unwrap_or(pose);
         // New landmarks only in image cells without a tracked one.
         let cell = self.config.min_feature_distance_px.max(2.0) as f32;
@@ -501,6 +562,7 @@ impl StereoVo {
             pose,
             landmarks: self.map.tracked(),
         };
+        self.stages.keyframe_ms += lap.lap();
         Ok(Some((reference, keyframe, edge)))
     }
 
@@ -525,12 +587,16 @@ impl StereoVo {
     ) -> Result<FrameResult, FrontendError> {
         // A new segment starts where the last one was seen, moved on by its last motion
         // over the time lost; the link's covariance says how little that guess is worth.
-        let (pose, velocity) = match &self.last_good {
+        let (pose, velocity, velocity_known) = match &self.last_good {
             Some(g) => {
                 let dt = seconds(g.stamp_ns, stamp_ns);
-                (g.pose.oplus(&(g.velocity * dt)), g.velocity)
+                (
+                    g.pose.oplus(&(g.velocity * dt)),
+                    g.velocity,
+                    dt <= self.config.max_frame_gap_s,
+                )
             }
-            None => (SE3::identity(), Tangent::zeros()),
+            None => (SE3::identity(), Tangent::zeros(), false),
         };
         self.map.clear();
         self.stats.segments += 1;
@@ -561,6 +627,7 @@ impl StereoVo {
             pose,
             stamp_ns,
             velocity,
+            velocity_known,
         });
         Ok(FrameResult {
             frame,
@@ -584,6 +651,7 @@ impl StereoVo {
     ) -> Result<FrameResult, FrontendError> {
         let track = self.track.clone().expect("tracking");
         let reference = track.reference;
+        let mut lap = Lap::start();
 
         // 1. Predict.
         let dt = seconds(track.stamp_ns, stamp_ns);
@@ -609,6 +677,7 @@ impl StereoVo {
             &mut tracked,
         );
         tracing::trace!(frame, ?counts, "tracked");
+        self.stages.track_ms += lap.lap();
 
         // 3. Estimate the pose in the reference keyframe's frame, and validate it.
         let to_reference = reference.pose.inverse();
@@ -655,9 +724,11 @@ impl StereoVo {
             return Ok(self.lost_frame(frame, LostReason::Implausible { speed_mps: speed }));
         }
         let (rotation_deg, translation_m) = prediction_error(&predicted, &pose);
+        tracing::trace!(frame, rotation_deg, translation_m, "prediction error");
         let growth = (dt / 0.1).max(1.0).powi(2);
-        if rotation_deg > self.config.max_prediction_error_deg * growth
-            || translation_m > self.config.max_prediction_error_m * growth
+        if track.velocity_known
+            && (rotation_deg > self.config.max_prediction_error_deg * growth
+                || translation_m > self.config.max_prediction_error_m * growth)
         {
             self.tracked = tracked;
             return Ok(self.lost_frame(
@@ -713,6 +784,7 @@ impl StereoVo {
             link: None,
             inliers,
         };
+        self.stages.estimate_ms += lap.lap();
         let mut next_reference = reference;
         let mut pose = pose;
         if need_keyframe {
@@ -747,6 +819,7 @@ impl StereoVo {
             pose,
             stamp_ns,
             velocity,
+            velocity_known: true,
         });
         Ok(result)
     }

@@ -219,7 +219,7 @@ pub fn track_point(
     for k in (0..=top).rev() {
         let s = (1u32 << k) as f32;
         let pl = [p[0] / s, p[1] / s];
-        let (q, e) = track_level(prev.level(k), next.level(k), pl, d, config, scratch)?;
+        let (q, e) = track_level(prev.level(k), next.level(k), pl, d, k == 0, config, scratch)?;
         d = [q[0] - pl[0], q[1] - pl[1]];
         residual = e;
         if k > 0 {
@@ -266,53 +266,90 @@ fn sample_patch(level: Level<'_>, x: f32, y: f32, size: usize, out: &mut [f32]) 
     true
 }
 
-fn mean_std(values: &[f32]) -> (f32, f32) {
-    let n = values.len() as f32;
-    let (mut s, mut s2) = (0.0f32, 0.0f32);
-    for &v in values {
-        s += v;
-        s2 += v * v;
+/// Lanes of the reductions below: independent partial sums the compiler keeps in one SIMD
+/// register each (a single running sum would have to be added in order, one at a time).
+const LANES: usize = 8;
+
+/// `(Σ a, Σ a², Σ a·x, Σ a·y)` over buffers padded with zeros to a multiple of [`LANES`].
+fn moments(a: &[f32], x: &[f32], y: &[f32]) -> [f32; 4] {
+    let mut acc = [[0.0f32; LANES]; 4];
+    for ((a, x), y) in a
+        .chunks_exact(LANES)
+        .zip(x.chunks_exact(LANES))
+        .zip(y.chunks_exact(LANES))
+    {
+        for l in 0..LANES {
+            acc[0][l] += a[l];
+            acc[1][l] += a[l] * a[l];
+            acc[2][l] += a[l] * x[l];
+            acc[3][l] += a[l] * y[l];
+        }
     }
-    let mean = s / n;
-    (mean, (s2 / n - mean * mean).max(0.0).sqrt())
+    acc.map(|lanes| lanes.iter().sum())
 }
 
-/// LK at one level from displacement `d`: the position in `next` and the final residual.
+/// `(Σ x², Σ x·y, Σ y², Σ x, Σ y)` over padded buffers.
+fn structure(x: &[f32], y: &[f32]) -> [f32; 5] {
+    let mut acc = [[0.0f32; LANES]; 5];
+    for (x, y) in x.chunks_exact(LANES).zip(y.chunks_exact(LANES)) {
+        for l in 0..LANES {
+            acc[0][l] += x[l] * x[l];
+            acc[1][l] += x[l] * y[l];
+            acc[2][l] += y[l] * y[l];
+            acc[3][l] += x[l];
+            acc[4][l] += y[l];
+        }
+    }
+    acc.map(|lanes| lanes.iter().sum())
+}
+
+/// LK at one level from displacement `d`: the position in `next`, and (when `residual`)
+/// the mean absolute difference of the brightness-matched windows there (else 0).
+///
+/// With `J' = μT + (J − μJ) γ`, `γ = σT / σJ`, the gradient term
+/// `b = Σ g (J' − T) = γ (Σ g J − μJ Σ g) + Σ g (μT − T)`: per step only `Σ J`, `Σ J²` and
+/// `Σ g J` over the window are needed, one pass.
 fn track_level(
     prev: Level<'_>,
     next: Level<'_>,
     p: [f32; 2],
     d: [f32; 2],
+    residual: bool,
     config: &KltConfig,
     s: &mut KltScratch,
 ) -> Result<([f32; 2], f32), KltFailure> {
     let r = config.window_radius;
     let n = 2 * r + 1;
     let g = n + 2;
+    let padded = (n * n).div_ceil(LANES) * LANES;
     s.grid.resize(g * g, 0.0);
-    s.template.resize(n * n, 0.0);
-    s.gx.resize(n * n, 0.0);
-    s.gy.resize(n * n, 0.0);
-    s.patch.resize(n * n, 0.0);
+    for buffer in [&mut s.template, &mut s.gx, &mut s.gy, &mut s.patch] {
+        buffer.clear();
+        buffer.resize(padded, 0.0);
+    }
     let half = r as f32;
     if !sample_patch(prev, p[0] - half - 1.0, p[1] - half - 1.0, g, &mut s.grid) {
         return Err(KltFailure::OutOfImage);
     }
     // Template and central-difference gradients from the (n+2)² grid around it.
-    let (mut hxx, mut hxy, mut hyy) = (0.0f32, 0.0f32, 0.0f32);
     for j in 0..n {
+        let (above, row, below) = (
+            &s.grid[j * g..(j + 1) * g],
+            &s.grid[(j + 1) * g..(j + 2) * g],
+            &s.grid[(j + 2) * g..(j + 3) * g],
+        );
+        let (t, gx, gy) = (
+            &mut s.template[j * n..(j + 1) * n],
+            &mut s.gx[j * n..(j + 1) * n],
+            &mut s.gy[j * n..(j + 1) * n],
+        );
         for i in 0..n {
-            let c = (j + 1) * g + i + 1;
-            let gx = 0.5 * (s.grid[c + 1] - s.grid[c - 1]);
-            let gy = 0.5 * (s.grid[c + g] - s.grid[c - g]);
-            s.template[j * n + i] = s.grid[c];
-            s.gx[j * n + i] = gx;
-            s.gy[j * n + i] = gy;
-            hxx += gx * gx;
-            hxy += gx * gy;
-            hyy += gy * gy;
+            t[i] = row[i + 1];
+            gx[i] = 0.5 * (row[i + 2] - row[i]);
+            gy[i] = 0.5 * (below[i + 1] - above[i + 1]);
         }
     }
+    let [hxx, hxy, hyy, sum_gx, sum_gy] = structure(&s.gx, &s.gy);
     let count = (n * n) as f32;
     let trace = 0.5 * (hxx + hyy);
     let min_eig = (trace - (0.25 * (hxx - hyy).powi(2) + hxy * hxy).sqrt()) / count;
@@ -320,27 +357,27 @@ fn track_level(
         return Err(KltFailure::Flat);
     }
     let det = hxx * hyy - hxy * hxy;
-    let (mt, st) = mean_std(&s.template);
+    let [st_sum, st_sq, gx_t, gy_t] = moments(&s.template, &s.gx, &s.gy);
+    let mt = st_sum / count;
+    let st = (st_sq / count - mt * mt).max(0.0).sqrt();
+    // Σ g (μT − T), constant over the steps.
+    let (cx, cy) = (mt * sum_gx - gx_t, mt * sum_gy - gy_t);
     let mut q = [p[0] + d[0], p[1] + d[1]];
-    let mut residual = f32::INFINITY;
     let mut step = f32::INFINITY;
+    let (mut mj, mut gain) = (0.0f32, 1.0f32);
     for _ in 0..config.max_iterations {
         if !sample_patch(next, q[0] - half, q[1] - half, n, &mut s.patch) {
             return Err(KltFailure::OutOfImage);
         }
-        let (mj, sj) = mean_std(&s.patch);
-        if sj < 1e-3 {
+        let [sj, sj_sq, gx_j, gy_j] = moments(&s.patch, &s.gx, &s.gy);
+        mj = sj / count;
+        let std = (sj_sq / count - mj * mj).max(0.0).sqrt();
+        if std < 1e-3 {
             return Err(KltFailure::Flat);
         }
-        let gain = st / sj;
-        let (mut bx, mut by, mut abs) = (0.0f32, 0.0f32, 0.0f32);
-        for k in 0..n * n {
-            let e = mt + (s.patch[k] - mj) * gain - s.template[k];
-            bx += s.gx[k] * e;
-            by += s.gy[k] * e;
-            abs += e.abs();
-        }
-        residual = abs / count;
+        gain = st / std;
+        let bx = gain * (gx_j - mj * sum_gx) + cx;
+        let by = gain * (gy_j - mj * sum_gy) + cy;
         let dx = (hyy * bx - hxy * by) / det;
         let dy = (hxx * by - hxy * bx) / det;
         if !(dx.is_finite() && dy.is_finite()) {
@@ -357,7 +394,14 @@ fn track_level(
     if step > 0.25 {
         return Err(KltFailure::NoConvergence);
     }
-    Ok((q, residual))
+    let mut abs = 0.0;
+    if residual {
+        // On the last window sampled (a step under `epsilon_px` before the result).
+        for k in 0..n * n {
+            abs += (mt + (s.patch[k] - mj) * gain - s.template[k]).abs();
+        }
+    }
+    Ok((q, abs / count))
 }
 
 #[cfg(test)]

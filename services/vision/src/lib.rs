@@ -10,7 +10,7 @@
 //! - [`stereo`]: sub-pixel row disparities on rectified pairs, triangulation and its
 //!   Jacobian;
 //! - [`klt`]: pyramidal Lucas-Kanade tracking seeded by a guess;
-//! - [`pnp`]: PnP-RANSAC.
+//! - [`pnp`], PnP-RANSAC.
 
 pub mod config;
 pub mod detect;
