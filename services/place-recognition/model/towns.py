@@ -17,7 +17,7 @@ class Town:
     """One `sim world` output: every frame of every robot (a keyframe each, as `place
     eval` with stride 1), poses as 3x4 camera-to-world matrices."""
 
-    def __init__(self, path, label=None):
+    def __init__(self, path, label=None, stride=1):
         self.path = Path(path)
         self.label = label if label is not None else self.path.name
         self.robots = sorted(p.name for p in self.path.iterdir() if (p / "image_0").is_dir())
@@ -27,16 +27,19 @@ class Town:
             images = sorted((self.path / r / "image_0").glob("*.png"))
             if len(images) != len(rows):
                 raise ValueError(f"{self.path / r}: {len(images)} images, {len(rows)} poses")
-            self.frames += images
-            self.robot += [r] * len(rows)
-            self.index += list(range(len(rows)))
-            poses.append(rows)
+            keep = range(0, len(rows), stride)
+            self.frames += [images[k] for k in keep]
+            self.robot += [r] * len(keep)
+            self.index += list(keep)
+            poses.append(rows[::stride])
         self.poses = np.concatenate(poses)
         self.robot = np.array(self.robot)
         self.index = np.array(self.index)
         self.pairs = {"overlap": [], "aliased": []}
         for line in (self.path / "closures.csv").read_text().splitlines()[1:]:
             ra, fa, rb, fb, kind = line.strip().split(",")
+            if int(fa) % stride or int(fb) % stride:
+                continue  # a frame left out (the pair's neighbours stand for it)
             self.pairs[kind].append((self.position(ra, int(fa)), self.position(rb, int(fb))))
         world = (self.path / "world.txt").read_text()
         self.seed = int(next(l.split("=")[1] for l in world.splitlines() if l.startswith("seed")))

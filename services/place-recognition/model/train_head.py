@@ -185,14 +185,19 @@ def initial_assignment(X, k, rng, per_image, iters):
 def whitening(v, dim, power=1.0, rng=None, max_samples=3000):
     """PCA(-whitening) of row vectors v to `dim`: (mean, projection [D_in, dim]); principal
     direction i divided by sigma_i^power; eigenvector signs fixed (largest entry positive).
-    At most `max_samples` rows (a seeded subset) go into the SVD: its cost grows with the
-    square of the rows, and 3,000 of them pin 128 directions of the VLAD space."""
+    At most `max_samples` rows (a seeded subset) go into the decomposition: its cost grows
+    with the square of the rows, and 3,000 of them pin 128 directions of the VLAD space."""
     if rng is not None and len(v) > max_samples:
         v = v[np.sort(rng.choice(len(v), max_samples, replace=False))]
     v = v.astype(np.float64)
     mean = v.mean(0)
-    _, s, vt = np.linalg.svd(v - mean, full_matrices=False)
-    vt = vt[:dim]
+    # The principal directions from the n x n Gram matrix (n rows << D_in columns): the same
+    # right singular vectors as the SVD of the centred rows, a quarter of its cost.
+    centred = v - mean
+    lam, u = np.linalg.eigh(centred @ centred.T)
+    top = np.argsort(lam)[::-1][:dim]
+    s = np.sqrt(np.maximum(lam[top], 0.0))
+    vt = (u[:, top].T @ centred) / np.maximum(s, EPS)[:, None]
     vt *= np.sign(vt[np.arange(dim), np.abs(vt).argmax(1)])[:, None]
     return mean, vt.T / ((s[:dim] / np.sqrt(len(v) - 1)) ** power + 1e-9)
 

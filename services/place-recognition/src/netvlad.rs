@@ -11,7 +11,7 @@ use crate::image::{to_tensor, GrayImage};
 use crate::model::{runtime, PlaceRecognitionError};
 
 /// File name of the default model inside `$DOORSLAM_HOME/models/`.
-pub const DEFAULT_MODEL_FILE: &str = "netvlad-effnetlite0-128.onnx";
+pub const DEFAULT_MODEL_FILE: &str = "netvlad-effnetlite0-triplet-128.onnx";
 /// Environment variable naming the model file (written into the env file by deploy/setup).
 pub const MODEL_ENV: &str = "DOORSLAM_PLACE_MODEL";
 /// Input size used when the model leaves height and width dynamic (the EuRoC aspect).

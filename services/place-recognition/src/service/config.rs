@@ -32,7 +32,7 @@ pub struct PlaceSection {
     pub method: Method,
     /// NetVLAD ONNX model (contract: `services/place-recognition/model/README.md`; any
     /// model with it drops in). Default `$DOORSLAM_PLACE_MODEL`, else
-    /// `$DOORSLAM_HOME/models/netvlad-effnetlite0-128.onnx`.
+    /// `$DOORSLAM_HOME/models/netvlad-effnetlite0-triplet-128.onnx`.
     #[serde(default)]
     pub model: Option<PathBuf>,
     /// Bag-of-words vocabulary with its wire projection. Default
