@@ -64,11 +64,14 @@ pub fn read_stat(pid: i32) -> Option<ProcStat> {
     parse_stat(&std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?)
 }
 
+/// The name of a process whose command line could not be read (or was still empty).
+const UNNAMED: &str = "?";
+
 /// The service a robot process runs: `doorslam service NAME` → NAME, `doorslam up` →
 /// `up`, anything else by its program name.
 fn process_name(pid: i32) -> String {
     let Ok(raw) = std::fs::read(format!("/proc/{pid}/cmdline")) else {
-        return "?".into();
+        return UNNAMED.into();
     };
     let args: Vec<String> = raw
         .split(|&b| b == 0)
@@ -84,7 +87,8 @@ fn process_name(pid: i32) -> String {
     }
     args.first()
         .and_then(|p| Path::new(p).file_name())
-        .map_or("?".into(), |n| n.to_string_lossy().into_owned())
+        .filter(|n| !n.is_empty())
+        .map_or(UNNAMED.into(), |n| n.to_string_lossy().into_owned())
 }
 
 /// Every robot process seen, with its last reading.
@@ -125,7 +129,14 @@ impl CpuMeter {
             };
             let key = (pid, st.start);
             match self.seen.get_mut(&key) {
-                Some(entry) => entry.cpu_s = entry.cpu_s.max(st.own_s),
+                Some(entry) => {
+                    entry.cpu_s = entry.cpu_s.max(st.own_s);
+                    // First seen between fork and exec (no command line yet): named once
+                    // it has one.
+                    if entry.name == UNNAMED {
+                        entry.name = process_name(pid);
+                    }
+                }
                 None => {
                     self.seen.insert(
                         key,
