@@ -151,6 +151,10 @@ const QUIET: Duration = Duration::from_secs(4);
 /// ... and not before the robots had this long to find each other again (scouting,
 /// sessions re-opened after the flight's cuts).
 const MEETING: Duration = Duration::from_secs(6);
+/// A team still split into several frames (a restarted robot that has not merged again,
+/// a lossy radio's sessions that did not get through yet) is settled only once quiet this
+/// long: the meeting at base is its chance to merge.
+const QUIET_SPLIT: Duration = Duration::from_secs(15);
 
 fn letter(r: usize) -> char {
     crate::flights::robot_name(r)
@@ -412,9 +416,14 @@ pub fn run(
                 x.closures == y.closures && x.rounds == y.rounds && x.bytes_sent == y.bytes_sent
             })
         };
+        let one_frame = snap
+            .robots
+            .windows(2)
+            .all(|w| !w[0].anchor.is_empty() && w[0].anchor == w[1].anchor);
+        let quiet = if one_frame { QUIET } else { QUIET_SPLIT };
         match &stable_since {
             Some((since, s)) if all_converged && same(s, &snap.robots) => {
-                if since.elapsed() >= QUIET && t_settle.elapsed() >= MEETING {
+                if since.elapsed() >= quiet && t_settle.elapsed() >= MEETING {
                     log.converged_at_base = true;
                     break;
                 }
