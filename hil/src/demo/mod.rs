@@ -179,6 +179,13 @@ fn log_sessions(log: &mut RunLog, t_s: f64, before: &[RobotSnapshot], now: &[Rob
     }
 }
 
+/// Every robot's back-end reports one and the same anchor: the team estimate is one frame.
+fn in_one_frame(robots: &[RobotSnapshot]) -> bool {
+    robots
+        .iter()
+        .all(|r| !r.anchor.is_empty() && r.anchor == robots[0].anchor)
+}
+
 /// Runs the demo; `progress` is called a few times per second.
 pub fn run(
     config: &DemoConfig,
@@ -416,11 +423,11 @@ pub fn run(
                 x.closures == y.closures && x.rounds == y.rounds && x.bytes_sent == y.bytes_sent
             })
         };
-        let one_frame = snap
-            .robots
-            .windows(2)
-            .all(|w| !w[0].anchor.is_empty() && w[0].anchor == w[1].anchor);
-        let quiet = if one_frame { QUIET } else { QUIET_SPLIT };
+        let quiet = if in_one_frame(&snap.robots) {
+            QUIET
+        } else {
+            QUIET_SPLIT
+        };
         match &stable_since {
             Some((since, s)) if all_converged && same(s, &snap.robots) => {
                 if since.elapsed() >= quiet && t_settle.elapsed() >= MEETING {
@@ -457,4 +464,41 @@ pub fn run(
     snap.phase = Phase::Reporting;
     progress(&snap);
     report::write(config, &world, &log)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn robot(name: char, anchor: &str) -> RobotSnapshot {
+        RobotSnapshot {
+            name,
+            state: RobotState::Running,
+            frames: None,
+            lost: None,
+            keyframes: 0,
+            rendezvous: 0,
+            meetings: Default::default(),
+            present: Vec::new(),
+            closures: 0,
+            rejected: 0,
+            rounds: 0,
+            converged: true,
+            anchor: anchor.into(),
+            bytes_sent: 0,
+        }
+    }
+
+    #[test]
+    fn a_team_is_in_one_frame_only_when_every_robot_names_the_same_anchor() {
+        assert!(in_one_frame(&[
+            robot('a', "a"),
+            robot('b', "a"),
+            robot('c', "a")
+        ]));
+        // A restarted robot back in its own frame, or one not yet reporting: split.
+        assert!(!in_one_frame(&[robot('a', "a"), robot('b', "b")]));
+        assert!(!in_one_frame(&[robot('a', "a"), robot('b', "")]));
+        assert!(!in_one_frame(&[robot('a', ""), robot('b', "")]));
+    }
 }
