@@ -131,10 +131,11 @@ impl CpuMeter {
             match self.seen.get_mut(&key) {
                 Some(entry) => {
                     entry.cpu_s = entry.cpu_s.max(st.own_s);
-                    // First seen between fork and exec (no command line yet): named once
-                    // it has one.
-                    if entry.name == UNNAMED {
-                        entry.name = process_name(pid);
+                    // First seen between fork and exec (no command line yet, or still
+                    // its parent's `up`): named by its latest command line.
+                    let name = process_name(pid);
+                    if name != UNNAMED {
+                        entry.name = name;
                     }
                 }
                 None => {

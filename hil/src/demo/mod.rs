@@ -151,6 +151,10 @@ const QUIET: Duration = Duration::from_secs(4);
 /// ... and not before the robots had this long to find each other again (scouting,
 /// sessions re-opened after the flight's cuts).
 const MEETING: Duration = Duration::from_secs(6);
+/// A team still split into several frames (a restarted robot that has not merged again,
+/// a lossy radio's sessions that did not get through yet) is settled only once quiet this
+/// long: the meeting at base is its chance to merge.
+const QUIET_SPLIT: Duration = Duration::from_secs(15);
 
 fn letter(r: usize) -> char {
     crate::flights::robot_name(r)
@@ -173,6 +177,13 @@ fn log_sessions(log: &mut RunLog, t_s: f64, before: &[RobotSnapshot], now: &[Rob
             }
         }
     }
+}
+
+/// Every robot's back-end reports one and the same anchor: the team estimate is one frame.
+fn in_one_frame(robots: &[RobotSnapshot]) -> bool {
+    robots
+        .iter()
+        .all(|r| !r.anchor.is_empty() && r.anchor == robots[0].anchor)
 }
 
 /// Runs the demo; `progress` is called a few times per second.
@@ -412,9 +423,14 @@ pub fn run(
                 x.closures == y.closures && x.rounds == y.rounds && x.bytes_sent == y.bytes_sent
             })
         };
+        let quiet = if in_one_frame(&snap.robots) {
+            QUIET
+        } else {
+            QUIET_SPLIT
+        };
         match &stable_since {
             Some((since, s)) if all_converged && same(s, &snap.robots) => {
-                if since.elapsed() >= QUIET && t_settle.elapsed() >= MEETING {
+                if since.elapsed() >= quiet && t_settle.elapsed() >= MEETING {
                     log.converged_at_base = true;
                     break;
                 }
@@ -448,4 +464,41 @@ pub fn run(
     snap.phase = Phase::Reporting;
     progress(&snap);
     report::write(config, &world, &log)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn robot(name: char, anchor: &str) -> RobotSnapshot {
+        RobotSnapshot {
+            name,
+            state: RobotState::Running,
+            frames: None,
+            lost: None,
+            keyframes: 0,
+            rendezvous: 0,
+            meetings: Default::default(),
+            present: Vec::new(),
+            closures: 0,
+            rejected: 0,
+            rounds: 0,
+            converged: true,
+            anchor: anchor.into(),
+            bytes_sent: 0,
+        }
+    }
+
+    #[test]
+    fn a_team_is_in_one_frame_only_when_every_robot_names_the_same_anchor() {
+        assert!(in_one_frame(&[
+            robot('a', "a"),
+            robot('b', "a"),
+            robot('c', "a")
+        ]));
+        // A restarted robot back in its own frame, or one not yet reporting: split.
+        assert!(!in_one_frame(&[robot('a', "a"), robot('b', "b")]));
+        assert!(!in_one_frame(&[robot('a', "a"), robot('b', "")]));
+        assert!(!in_one_frame(&[robot('a', ""), robot('b', "")]));
+    }
 }

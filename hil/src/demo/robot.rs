@@ -44,6 +44,9 @@ pub struct RobotSnapshot {
     /// Distributed back-end steps that solved something.
     pub rounds: u64,
     pub converged: bool,
+    /// The robot whose frame the distributed back-end puts this robot in (its own until
+    /// it merges with a team; empty before the back-end reports).
+    pub anchor: String,
     /// Bytes this robot's team link sent (its ledger, payload).
     pub bytes_sent: u64,
 }
@@ -259,6 +262,11 @@ impl Robot {
                 .and_then(|b| b.pointer("/team/converged"))
                 .and_then(|c| c.as_bool())
                 .unwrap_or(false),
+            anchor: b
+                .and_then(|b| b.pointer("/team/anchor"))
+                .and_then(|a| a.as_str())
+                .unwrap_or_default()
+                .to_string(),
             bytes_sent: ledger_bytes_sent(&self.dir.join("ledger.json")),
         }
     }
