@@ -509,7 +509,7 @@ fn verify_chain(
     };
     eprintln!("place eval --verify: the front-end's features of every keyframe");
     let progress = |done: usize, total: usize| {
-        if done % 250 == 0 || done == total {
+        if done.is_multiple_of(250) || done == total {
             eprintln!("place eval --verify: {done}/{total} keyframes");
         }
     };

@@ -266,7 +266,14 @@ mod tests {
         let mut w: Vec<f32> = v
             .iter()
             .enumerate()
-            .map(|(i, x)| x + by * if (i + seed) % 3 == 0 { 1.0 } else { -0.5 })
+            .map(|(i, x)| {
+                x + by
+                    * if (i + seed).is_multiple_of(3) {
+                        1.0
+                    } else {
+                        -0.5
+                    }
+            })
             .collect();
         let n = w.iter().map(|x| x * x).sum::<f32>().sqrt();
         w.iter_mut().for_each(|x| *x /= n);

@@ -178,7 +178,7 @@ pub fn evaluate_chain(
             let mut closures = Vec::new();
             for m in &pairs {
                 let (q, c) = (by_key[&m.query], by_key[&m.candidate]);
-                if !packets.contains_key(&c) {
+                if let std::collections::btree_map::Entry::Vacant(slot) = packets.entry(c) {
                     let packet = to_packet(
                         m.candidate,
                         &input.calibration[c],
@@ -187,7 +187,7 @@ pub fn evaluate_chain(
                     )
                     .map_err(|e| format!("packet of keyframe {c}: {e}"))?;
                     report.bytes.packets += encoded(beta, packet.clone())?;
-                    packets.insert(c, packet);
+                    slot.insert(packet);
                 }
                 let (remote_calib, remote) =
                     from_packet(&packets[&c], verify_config.disparity_sigma_px);
@@ -284,6 +284,9 @@ fn median(v: &mut [f64]) -> f64 {
     v[v.len() / 2]
 }
 
+/// Per keyframe its features and rectified camera, and the milliseconds per keyframe.
+pub type KeyframeFeatures = (Vec<Vec<Feature>>, Vec<StereoCalibration>, f64);
+
 /// The front-end's keyframe features of every keyframe of `set` (GFTT + ORB with a stereo
 /// match, strongest first: what a `Keyframe` sample carries), the rectified camera of each,
 /// and the milliseconds per keyframe; `progress(done, total)` hears about each.
@@ -291,7 +294,7 @@ pub fn keyframe_features(
     set: &EvalSet,
     vo: &doorslam_frontend::VoConfig,
     progress: &dyn Fn(usize, usize),
-) -> Result<(Vec<Vec<Feature>>, Vec<StereoCalibration>, f64), EvalError> {
+) -> Result<KeyframeFeatures, EvalError> {
     let mut cameras: BTreeMap<String, (StereoCalibration, doorslam_frontend::StereoVo)> =
         BTreeMap::new();
     let input = |path: &std::path::Path, msg: String| EvalError::Input {
