@@ -46,15 +46,18 @@ fn edge(a: u64, b: u64, x: f64) -> GraphEdge {
     }
 }
 
+/// An update: pairs removed, and pairs rewritten or added with 1-2 edges each.
+type Update = (Vec<(u64, u64)>, Vec<(u64, u64, u8)>);
+
 /// An update of `held`: some pairs removed, some rewritten or added (1-2 edges each).
-fn arb_update() -> impl Strategy<Value = (Vec<(u64, u64)>, Vec<(u64, u64, u8)>)> {
+fn arb_update() -> impl Strategy<Value = Update> {
     (
         prop::collection::vec((0u64..6, 0u64..6), 0..4),
         prop::collection::vec((0u64..6, 0u64..6, 1u8..3), 0..5),
     )
 }
 
-fn graph(version: u64, base: u64, u: &(Vec<(u64, u64)>, Vec<(u64, u64, u8)>)) -> SeparatorGraph {
+fn graph(version: u64, base: u64, u: &Update) -> SeparatorGraph {
     let k = |i| key::symbol(1, i).unwrap();
     let mut edges = Vec::new();
     let mut seen = std::collections::BTreeSet::new();

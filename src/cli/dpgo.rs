@@ -202,7 +202,7 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         ("--round-s", args.round_s),
         ("--retransmit-s", args.retransmit_s),
     ] {
-        if !(t >= 0.001 && t <= 3600.0) {
+        if !(0.001..=3600.0).contains(&t) {
             bail!("{flag} {t}: seconds between 0.001 and 3600");
         }
     }

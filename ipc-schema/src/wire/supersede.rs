@@ -65,7 +65,7 @@ fn compose(older: &SeparatorGraph, newer: &SeparatorGraph) -> Option<SeparatorGr
             .collect();
         gone.into_iter().collect()
     };
-    (edges.len() <= MAX_GRAPH_EDGES && removed.len() <= MAX_GRAPH_EDGES).then(|| SeparatorGraph {
+    (edges.len() <= MAX_GRAPH_EDGES && removed.len() <= MAX_GRAPH_EDGES).then_some(SeparatorGraph {
         origin: older.origin,
         version: newer.version,
         base: older.base,

@@ -40,7 +40,7 @@ fn edge(robot: u8, a: u64, b: u64, x: f64) -> GraphEdge {
 /// (v % 7, v % 7 + 1) rewritten, and every fifth version pair (v % 3, 9) removed.
 fn version(robot: u8, v: u64) -> SeparatorGraph {
     let (a, b) = (v % 7, v % 7 + 1);
-    let removed = if v > 1 && v % 5 == 0 {
+    let removed = if v > 1 && v.is_multiple_of(5) {
         vec![(
             key::symbol(robot, v % 3).unwrap(),
             key::symbol(robot, 9).unwrap(),
@@ -49,7 +49,7 @@ fn version(robot: u8, v: u64) -> SeparatorGraph {
         Vec::new()
     };
     let mut edges = vec![edge(robot, a, b, v as f64)];
-    if v % 3 == 0 {
+    if v.is_multiple_of(3) {
         edges.push(edge(robot, v % 3, 9, v as f64 + 0.5));
     }
     SeparatorGraph {
@@ -409,7 +409,7 @@ impl Pair {
         )
     }
 
-    fn to_b(&mut self, out: Vec<Outgoing>) {
+    fn carry_to_b(&mut self, out: Vec<Outgoing>) {
         let [_, pb] = &mut self.places;
         for o in out {
             let m = Message::decode(&o.message.encode().unwrap()).unwrap();
@@ -424,7 +424,7 @@ impl Pair {
         }
     }
 
-    fn to_a(&mut self, out: Vec<Outgoing>) {
+    fn carry_to_a(&mut self, out: Vec<Outgoing>) {
         let [pa, _] = &mut self.places;
         for o in out {
             let m = Message::decode(&o.message.encode().unwrap()).unwrap();
@@ -443,9 +443,9 @@ impl Pair {
     fn settle(&mut self, now: u64) {
         for _ in 0..6 {
             let out = self.poll_a(now);
-            self.to_b(out);
+            self.carry_to_b(out);
             let out = self.poll_b(now);
-            self.to_a(out);
+            self.carry_to_a(out);
         }
     }
 
@@ -476,7 +476,7 @@ fn a_lost_v2_keeps_v3_back_until_v2_is_through_and_the_peer_ends_at_the_newest()
     assert!(p.b.peer_robot().is_some() && p.a.peer_robot().is_some());
     let out = p.release(10);
     assert_eq!(graphs(&out).len(), 1);
-    p.to_b(out);
+    p.carry_to_b(out);
     p.settle(20);
     assert_eq!(p.b_backend.got.lock().unwrap().versions[&0], vec![1]);
     // v2 goes out and is lost.
@@ -490,16 +490,16 @@ fn a_lost_v2_keeps_v3_back_until_v2_is_through_and_the_peer_ends_at_the_newest()
     assert_eq!(p.a.stats().delivery.superseded, superseded + 2);
     // b acknowledges what it has (v1); nothing settles v2.
     let acks = p.poll_b(60);
-    p.to_a(acks);
+    p.carry_to_a(acks);
     assert!(graphs(&p.poll_a(70)).is_empty());
     // After the retransmission time v2 goes again, the same message.
     let resent = p.poll_a(200);
     assert_eq!(graphs(&resent), vec![&v2]);
-    p.to_b(resent);
+    p.carry_to_b(resent);
     assert_eq!(p.b_backend.got.lock().unwrap().versions[&0], vec![1, 2]);
     // Once v2 is acknowledged, v3∘v4 goes as one update of v2.
     let acks = p.poll_b(210);
-    p.to_a(acks);
+    p.carry_to_a(acks);
     let out = p.poll_a(220);
     let merged = graphs(&out);
     assert_eq!(merged.len(), 1);
@@ -508,7 +508,7 @@ fn a_lost_v2_keeps_v3_back_until_v2_is_through_and_the_peer_ends_at_the_newest()
         "{:?}",
         merged[0]
     );
-    p.to_b(out);
+    p.carry_to_b(out);
     p.settle(230);
     let got = p.b_backend.got.lock().unwrap();
     assert_eq!(got.versions[&0], vec![1, 2, 4]);
