@@ -20,6 +20,10 @@ PCM_SEEDS = tuple(range(1, 11))
 
 
 def run(doorslam, *args):
+    # The tables before "link" were measured over the runner's own delivery (--link direct);
+    # "link" compares it with the team link.
+    if args[0] == "dpgo" and "--link" not in args and not LINK_TABLE[0]:
+        args = (*args, "--link", "direct")
     out = subprocess.run([doorslam, *args, "--json"], check=True, capture_output=True, text=True)
     return json.loads(out.stdout)
 
@@ -146,17 +150,41 @@ def table_stream(doorslam, all_teams):
               f"| {u['bytes']:,} / {w['bytes']:,} | {u['iterations']} | {fmt_gap(u['chi2_gap'])} |")
 
 
+LINK_TABLE = [False]
+
+
+def table_link(doorslam, all_teams):
+    """The team link robots run (PeerSession, its acknowledgements and resends in the bytes)
+    against the runner's own delivery, clean and faulty, and the solver out mid-stream."""
+    cases = [("direct (agents' own acks)", ["--link", "direct"]),
+             ("session", []),
+             ("session, drop 0.3 reorder 0.3 dup 0.1", ["--drop", "0.3", "--reorder", "0.3", "--duplicate", "0.1"]),
+             ("session, --stream, a (solver) out rounds 10-40", ["--stream", "10", "--outage", "a@10..40"])]
+    print("| team | " + " | ".join(c for c, _ in cases) + " |")
+    print("|---|" + "---|" * len(cases))
+    LINK_TABLE[0] = True
+    picked = [t for t in all_teams if "outliers" not in t[0] and "36" not in t[0]]
+    for name, files, extra, _ in picked:
+        cells = []
+        for _, args in cases:
+            r = run(doorslam, "dpgo", *files, *extra, *args)
+            cells.append(f"{'' if r['converged'] else 'NOT converged (' + r['stop_reason'] + '), '}{r['iterations']} rounds, "
+                         f"{fmt_gap(r['chi2_gap'])}, {r['bytes']:,} B = {r['bytes_ratio']:.3f}x")
+        print(f"| {name} | " + " | ".join(cells) + " |")
+
+
 def main():
     doorslam, data, acceptance, *tables = sys.argv[1:]
     with tempfile.TemporaryDirectory(prefix="doorslam-bench-dpgo-") as tmp:
         all_teams = teams(data, acceptance, tmp, doorslam)
-        for t in tables or ["teams", "loss", "pcm", "loop", "stream"]:
+        for t in tables or ["teams", "loss", "pcm", "loop", "stream", "link"]:
             print(f"\n### {t}\n")
             {"teams": lambda: table_teams(doorslam, all_teams),
              "loss": lambda: table_loss(doorslam, all_teams),
              "pcm": lambda: table_pcm(doorslam, data, acceptance, tmp),
              "loop": lambda: table_loop(doorslam, all_teams),
-             "stream": lambda: table_stream(doorslam, all_teams)}[t]()
+             "stream": lambda: table_stream(doorslam, all_teams),
+             "link": lambda: table_link(doorslam, all_teams)}[t]()
             sys.stdout.flush()
 
 

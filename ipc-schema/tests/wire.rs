@@ -112,7 +112,14 @@ fn closure(i: u64) -> LoopClosure {
 /// One message of each kind, small enough to pin.
 fn samples() -> Vec<Message> {
     vec![
-        Message::new(header("alpha", 0), Hello { robot: 0 }),
+        Message::new(
+            header("alpha", 0),
+            Hello {
+                robot: 0,
+                heard: Some(4),
+                base: 130,
+            },
+        ),
         Message::new(
             header("alpha", 1),
             Descriptors {
@@ -232,10 +239,10 @@ fn hex(b: &[u8]) -> String {
 }
 
 // The hello, in full: version 3, kind 1, sender "alpha" (5 bytes), epoch 3, sequence 0,
-// robot 0. The descriptor and feature payloads are long, so those pins cover everything.
+// robot 0, heard epoch 4 (as 5), base 130 (a two-byte varint). The descriptor and feature payloads are long, so those pins cover everything.
 const PINNED: [&str; 10] = [
-    // hello (11 bytes)
-    "030105616c706861030000",
+    // hello (14 bytes)
+    "030105616c706861030000058201",
     // descriptors (147 bytes)
     concat!(
         "030205616c706861030100050401025ce3803a4317e8bd9a86818fabd3012f56727f7a654216e7bc",
@@ -309,7 +316,7 @@ fn pinned_bytes_of_each_kind() {
     }
     assert_eq!(
         samples[0].encode().unwrap(),
-        [3, 1, 5, b'a', b'l', b'p', b'h', b'a', 3, 0, 0]
+        [3, 1, 5, b'a', b'l', b'p', b'h', b'a', 3, 0, 0, 5, 0x82, 1]
     );
 }
 
@@ -605,7 +612,16 @@ fn limits_are_checked_before_allocation() {
             "{m:?}"
         );
     };
-    refused(Body::Hello(Hello { robot: 52 }));
+    refused(Body::Hello(Hello {
+        robot: 52,
+        heard: None,
+        base: 0,
+    }));
+    refused(Body::Hello(Hello {
+        robot: 1,
+        heard: Some(u64::MAX),
+        base: 0,
+    }));
     let (d1, d0) = (descriptor(1), descriptor(0));
     let batch = |descriptors| {
         Body::Descriptors(Descriptors {
@@ -872,7 +888,8 @@ fn arb_camera() -> impl Strategy<Value = VerificationCamera> {
 
 fn arb_body() -> impl Strategy<Value = Body> {
     prop_oneof![
-        (0u8..52).prop_map(|robot| Body::Hello(Hello { robot })),
+        (0u8..52, prop::option::of(0u64..u64::MAX), any::<u64>())
+            .prop_map(|(robot, heard, base)| Body::Hello(Hello { robot, heard, base })),
         arb_descriptors().prop_map(Body::Descriptors),
         prop::collection::vec((arb_key(), arb_key(), 0f32..2.0), 0..20).prop_map(|m| {
             Body::Matches(Matches {

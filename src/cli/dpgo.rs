@@ -7,11 +7,13 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use doorslam_backend::distributed::condensed::PcmSettings;
-use doorslam_backend::distributed::runner::{run as run_team, RunOptions};
+use doorslam_backend::distributed::runner::{run_over, RunOptions, Transport};
 use doorslam_backend::distributed::{AgentOptions, Method};
 use doorslam_backend::key;
 use doorslam_backend::outliers::labels::unordered;
 use doorslam_backend::outliers::{inject_outliers, read_labels};
+use doorslam_hil::dpgo::{Faults, LinkOptions, SessionLink};
+use doorslam_team::protocol::ProtocolConfig;
 
 use super::pgo::InformationArg;
 
@@ -24,6 +26,26 @@ pub struct DpgoArgs {
     /// Probability that a message between robots is lost.
     #[arg(long, default_value_t = 0.0)]
     pub drop: f64,
+    /// Probability that a message is held back 1-3 rounds (later ones overtake it; the
+    /// team link only).
+    #[arg(long, default_value_t = 0.0)]
+    pub reorder: f64,
+    /// Probability that a message arrives twice (the team link only).
+    #[arg(long, default_value_t = 0.0)]
+    pub duplicate: f64,
+    /// The transport between the agents: the team link robots run (session: one
+    /// PeerSession per pair of neighbours, its delivery contract, acknowledgements and
+    /// resends counted in the bytes), or the runner's own (direct: the agents acknowledge
+    /// and resend themselves, each message lost with --drop).
+    #[arg(long, value_enum, default_value_t = LinkArg::Session)]
+    pub link: LinkArg,
+    /// Local time of one round, in seconds (the team link's clock).
+    #[arg(long, default_value_t = 0.1)]
+    pub round_s: f64,
+    /// The team link resends an unacknowledged message after this long, in seconds
+    /// (doubling per resend up to 16 times).
+    #[arg(long, default_value_t = 0.3)]
+    pub retransmit_s: f64,
     /// Seed of the loss draws.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -111,6 +133,12 @@ pub struct DpgoArgs {
     pub json: bool,
 }
 
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum LinkArg {
+    Session,
+    Direct,
+}
+
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum MethodArg {
     Dgs,
@@ -158,8 +186,25 @@ fn parse_outage(v: &[String]) -> Result<BTreeMap<u8, std::ops::Range<u64>>> {
 }
 
 pub fn run(args: DpgoArgs) -> Result<()> {
-    if !(0.0..1.0).contains(&args.drop) {
-        bail!("--drop {}: a probability in [0, 1)", args.drop);
+    for (flag, p) in [
+        ("--drop", args.drop),
+        ("--reorder", args.reorder),
+        ("--duplicate", args.duplicate),
+    ] {
+        if !(0.0..1.0).contains(&p) {
+            bail!("{flag} {p}: a probability in [0, 1)");
+        }
+    }
+    if args.link == LinkArg::Direct && (args.reorder > 0.0 || args.duplicate > 0.0) {
+        bail!("--reorder and --duplicate need --link session (the runner's own link only drops)");
+    }
+    for (flag, t) in [
+        ("--round-s", args.round_s),
+        ("--retransmit-s", args.retransmit_s),
+    ] {
+        if !(0.001..=3600.0).contains(&t) {
+            bail!("{flag} {t}: seconds between 0.001 and 3600");
+        }
     }
     if matches!(args.information, InformationArg::AsIs) {
         bail!("--information as-is: the distributed back-end needs positive-definite information (use check or nearest-pd)");
@@ -223,7 +268,7 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         MethodArg::Dgs => Method::Dgs,
         MethodArg::Condensed => Method::Condensed,
     };
-    let options = RunOptions {
+    let mut options = RunOptions {
         agent,
         drop: args.drop,
         seed: args.seed,
@@ -239,7 +284,41 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         .map(|p| p.display().to_string())
         .collect::<Vec<_>>()
         .join(", ");
-    let r = run_team(&graph, &options).with_context(|| format!("distributed PGO of {names}"))?;
+    let mut link = (args.link == LinkArg::Session).then(|| {
+        options.agent.link_delivers = true;
+        SessionLink::new(LinkOptions {
+            faults: Faults {
+                drop: args.drop,
+                reorder: args.reorder,
+                duplicate: args.duplicate,
+                seed: args.seed,
+            },
+            round_ms: (args.round_s * 1000.0).round() as u64,
+            protocol: ProtocolConfig {
+                retransmit_ms: (args.retransmit_s * 1000.0).round() as u64,
+                ..ProtocolConfig::default()
+            },
+        })
+    });
+    let r = run_over(
+        &graph,
+        &options,
+        link.as_mut().map(|l| l as &mut dyn Transport),
+    )
+    .with_context(|| format!("distributed PGO of {names}"))?;
+    let link_json = link.as_ref().map(|l| {
+        let d = l.delivery();
+        serde_json::json!({
+            "link": "session",
+            "held_back": d.held_back,
+            "beyond_hold_back": d.beyond_hold_back,
+            "superseded": d.superseded,
+            "most_waiting": d.most_waiting,
+            "reordered": l.reordered,
+            "duplicated": l.duplicated,
+            "not_taken": l.not_taken,
+        })
+    });
     // Kept: every labelled closure PCM did not reject in the loop (the same verdicts on
     // every robot that solves).
     let quality = labels.as_ref().map(|l| {
@@ -287,6 +366,13 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         let mut v = serde_json::to_value(&r)?;
         if let (Some(serde_json::Value::Object(q)), Some(o)) = (&quality, v.as_object_mut()) {
             o.extend(q.clone());
+        }
+        match (&link_json, v.as_object_mut()) {
+            (Some(serde_json::Value::Object(q)), Some(o)) => o.extend(q.clone()),
+            (None, Some(o)) => {
+                o.insert("link".into(), "direct".into());
+            }
+            _ => {}
         }
         println!("{v}");
     } else {

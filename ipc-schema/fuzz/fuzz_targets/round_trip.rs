@@ -39,6 +39,12 @@ fn body(u: &mut Unstructured<'_>) -> Result<Option<Body>> {
     Ok(Some(match u.int_in_range(0..=9u8)? {
         0 => Body::Hello(Hello {
             robot: u.int_in_range(0..=51)?,
+            heard: if u.arbitrary()? {
+                Some(u.int_in_range(0..=u64::MAX - 1)?)
+            } else {
+                None
+            },
+            base: u.arbitrary()?,
         }),
         1 => {
             let robot = u.int_in_range(0..=51u8)?;

@@ -115,12 +115,22 @@ pub struct Header {
     pub sequence: u64,
 }
 
-/// Announces a robot to a peer at the start of a rendezvous.
+/// Announces a robot to a peer at the start of a rendezvous, and starts the sender's
+/// sequence session towards the peer's epoch it heard.
+///
+/// Layout: robot (u8), heard (varint: 0 = no epoch of the peer heard yet, else the epoch
+/// + 1), base (varint).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Hello {
     /// The robot's number in multi-robot keys (0 = 'a', < 52): the robot byte of every key
     /// it sends.
     pub robot: u8,
+    /// The receiver's epoch this Hello answers (None: none heard yet). A receiver takes
+    /// the sender's other messages only after a Hello naming its current epoch: what the
+    /// sender sent before it knew that epoch belongs to an older session.
+    pub heard: Option<u64>,
+    /// Every kind's sequences in that session start here (lower ones are older sessions').
+    pub base: u64,
 }
 
 /// A batch of place descriptors (rendezvous step 1): those of the sender's keyframes with
@@ -372,6 +382,16 @@ impl Message {
                     return Err(WireError::invalid("hello robot", s.offset(), NOT_A_ROBOT));
                 }
                 s.u8(h.robot);
+                match h.heard {
+                    None => s.varint(0),
+                    Some(e) => {
+                        let v = e.checked_add(1).ok_or_else(|| {
+                            WireError::invalid("hello heard", s.offset(), "epoch at u64::MAX")
+                        })?;
+                        s.varint(v);
+                    }
+                }
+                s.varint(h.base);
             }
             Body::Descriptors(d) => write_descriptors(s, d)?,
             Body::Matches(m) => {
@@ -444,7 +464,9 @@ impl Message {
                 if robot >= doorslam_geometry::key::MAX_ROBOTS {
                     return Err(WireError::invalid("hello robot", offset, NOT_A_ROBOT));
                 }
-                Body::Hello(Hello { robot })
+                let heard = r.varint("hello heard")?.checked_sub(1);
+                let base = r.varint("hello base")?;
+                Body::Hello(Hello { robot, heard, base })
             }
             Kind::Descriptors => Body::Descriptors(read_descriptors(&mut r)?),
             Kind::Matches => {

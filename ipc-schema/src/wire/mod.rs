@@ -29,6 +29,7 @@ mod backend;
 mod codec;
 mod error;
 mod message;
+mod supersede;
 mod types;
 
 pub use backend::{
@@ -43,6 +44,7 @@ pub use message::{
     MAX_DESCRIPTORS, MAX_FEATURES, MAX_LOOP_CLOSURES, MAX_MATCHES, MAX_MESSAGE_BYTES,
     MAX_POSE_ESTIMATES, WIRE_VERSION,
 };
+pub use supersede::Slot;
 pub use types::{
     CompactPose, Descriptor, Information, Pose, QuantizeError, RelaxedRotation, RobotId,
     VerificationCamera, VerificationFeature, COMPACT_POSE_MIN_BYTES, COMPACT_QUATERNION_MAX,

@@ -265,7 +265,11 @@ fn malformed_stale_and_out_of_order_messages_change_nothing() {
             epoch: 1,
             sequence: 0,
         },
-        Body::Hello(doorslam_ipc::wire::Hello { robot: 1 }),
+        Body::Hello(doorslam_ipc::wire::Hello {
+            robot: 1,
+            heard: None,
+            base: 0,
+        }),
     );
     assert!(a.receive(1, &hello).is_err());
     a.step().unwrap();

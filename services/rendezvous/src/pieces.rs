@@ -974,11 +974,27 @@ mod tests {
         };
         // Before the peer's Hello, its back-end messages are refused.
         assert!(relay
-            .receive(&peer, &header, Body::Hello(Hello { robot: 1 }))
+            .receive(
+                &peer,
+                &header,
+                Body::Hello(Hello {
+                    robot: 1,
+                    heard: None,
+                    base: 0
+                })
+            )
             .is_err());
         relay.presence(&peer, 1, 4, true);
         relay
-            .receive(&peer, &header, Body::Hello(Hello { robot: 1 }))
+            .receive(
+                &peer,
+                &header,
+                Body::Hello(Hello {
+                    robot: 1,
+                    heard: None,
+                    base: 0,
+                }),
+            )
             .unwrap();
         let closure = LoopClosure {
             key_a: key::symbol(0, 3).unwrap(),
@@ -1003,7 +1019,14 @@ mod tests {
         // What the back-end queues for robot 1 goes to the peer that said it is robot 1.
         s.queue_for_peer(
             1,
-            Message::new(header.clone(), Body::Hello(Hello { robot: 0 })),
+            Message::new(
+                header.clone(),
+                Body::Hello(Hello {
+                    robot: 0,
+                    heard: None,
+                    base: 0,
+                }),
+            ),
         );
         assert_eq!(relay.messages_for(&RobotId::new("other").unwrap()).len(), 0);
         assert_eq!(relay.messages_for(&peer).len(), 1);

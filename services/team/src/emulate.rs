@@ -1,7 +1,7 @@
 //! In-process link emulation behind [`Link`], for fast deterministic tests of the protocol:
 //! robots on one [`Bus`], each pair in range or not ([`Bus::join`], [`Bus::cut`]: what the
-//! liveliness tokens would say), random loss with a seed, and counters of what was
-//! published and delivered.
+//! liveliness tokens would say), random loss, reordering and duplication with a seed, and
+//! counters of what was published and delivered.
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -16,6 +16,14 @@ struct BusState {
     queues: BTreeMap<RobotId, VecDeque<LinkEvent>>,
     in_range: BTreeSet<(RobotId, RobotId)>,
     loss: f64,
+    /// Probability that a message is held back 1-4 polls of its receiver (arriving after
+    /// messages sent later), and that it arrives twice (the copy delayed the same way).
+    reorder: f64,
+    duplicate: f64,
+    /// Messages held back per receiver: polls still to wait, the message.
+    delayed: BTreeMap<RobotId, Vec<(u32, LinkEvent)>>,
+    reordered: u64,
+    duplicated: u64,
     rng: u64,
     published_bytes: BTreeMap<RobotId, u64>,
     published: BTreeMap<RobotId, Vec<(RobotId, Vec<u8>)>>,
@@ -87,6 +95,11 @@ impl Bus {
         let mut s = self.state();
         if s.in_range.remove(&pair(a, b)) {
             for (me, other) in [(a, b), (b, a)] {
+                if let Some(d) = s.delayed.get_mut(me) {
+                    d.retain(
+                        |(_, e)| !matches!(e, LinkEvent::Message { from, .. } if from == other),
+                    );
+                }
                 let q = s.queues.entry(me.clone()).or_default();
                 q.retain(|e| !matches!(e, LinkEvent::Message { from, .. } if from == other));
                 q.push_back(LinkEvent::PeerLeft(other.clone()));
@@ -96,6 +109,20 @@ impl Bus {
 
     pub fn set_loss(&self, loss: f64) {
         self.state().loss = loss;
+    }
+
+    /// Each message is held back with probability `reorder` (1-4 polls of its receiver,
+    /// so later ones overtake it) and arrives twice with probability `duplicate`.
+    pub fn set_reorder_duplicate(&self, reorder: f64, duplicate: f64) {
+        let mut s = self.state();
+        s.reorder = reorder;
+        s.duplicate = duplicate;
+    }
+
+    /// Messages held back so far, and messages that arrived twice.
+    pub fn reordered_duplicated(&self) -> (u64, u64) {
+        let s = self.state();
+        (s.reordered, s.duplicated)
     }
 
     /// Bytes `robot` published (lost ones included: they left the robot).
@@ -152,23 +179,46 @@ impl Link for EmulatedLink {
         if loss > 0.0 && s.random() < loss {
             return Ok(());
         }
-        s.queues
-            .entry(to.clone())
-            .or_default()
-            .push_back(LinkEvent::Message {
+        let copies = if s.duplicate > 0.0 && s.random() < s.duplicate {
+            s.duplicated += 1;
+            2
+        } else {
+            1
+        };
+        for _ in 0..copies {
+            let event = LinkEvent::Message {
                 from: self.me.clone(),
                 kind: kind.name().into(),
                 bytes: bytes.to_vec(),
-            });
+            };
+            if s.reorder > 0.0 && s.random() < s.reorder {
+                s.reordered += 1;
+                let polls = 1 + (s.random() * 4.0) as u32;
+                s.delayed
+                    .entry(to.clone())
+                    .or_default()
+                    .push((polls, event));
+            } else {
+                s.queues.entry(to.clone()).or_default().push_back(event);
+            }
+        }
         Ok(())
     }
 
     fn poll_events(&mut self, _timeout: Duration) -> Vec<LinkEvent> {
-        self.bus
-            .state()
-            .queues
-            .get_mut(&self.me)
-            .map(|q| q.drain(..).collect())
-            .unwrap_or_default()
+        let mut s = self.bus.state();
+        // Held-back messages whose time came go after what arrived meanwhile.
+        let mut due = Vec::new();
+        if let Some(d) = s.delayed.get_mut(&self.me) {
+            for (polls, _) in d.iter_mut() {
+                *polls = polls.saturating_sub(1);
+            }
+            let (now, later): (Vec<_>, Vec<_>) = d.drain(..).partition(|(p, _)| *p == 0);
+            *d = later;
+            due = now.into_iter().map(|(_, e)| e).collect();
+        }
+        let q = s.queues.entry(self.me.clone()).or_default();
+        q.extend(due);
+        q.drain(..).collect()
     }
 }

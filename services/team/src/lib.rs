@@ -5,6 +5,8 @@
 //! estimates), and every byte goes through the bandwidth ledger.
 //!
 //! - [`link`]: Zenoh sessions and every key expression the team uses (the table is there).
+//! - [`delivery`]: the delivery contract with one peer (in order, exactly once per kind,
+//!   state superseding, sessions per epoch).
 //! - [`protocol`]: the rendezvous protocol with one peer as a pure state machine, and the
 //!   traits it calls into ([`DescriptorSource`], [`Verifier`], [`BackendExchange`]).
 //! - [`node`]: one robot's end, over any [`Link`]; checks every incoming message (known
@@ -20,6 +22,7 @@
 
 pub mod bw;
 pub mod certs;
+pub mod delivery;
 pub mod emulate;
 pub mod ledger;
 pub mod link;

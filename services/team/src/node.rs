@@ -198,7 +198,11 @@ impl Node {
             verifier: self.pieces.verifier.as_mut(),
             backend: self.pieces.backend.as_mut(),
         };
-        if let Err(refusal) = session.receive(msg, &mut svc) {
+        let refusals = match session.receive(msg, &mut svc) {
+            Ok(refusals) => refusals,
+            Err(refusal) => vec![refusal],
+        };
+        for refusal in refusals {
             tracing::debug!(peer = %from, %refusal, "message not processed");
             self.ledger
                 .lock()

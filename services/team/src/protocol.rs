@@ -14,24 +14,22 @@
 //! 4. the back-end's rounds: whatever [`BackendExchange::messages_for`] returns is sent,
 //!    and every other kind received goes to [`BackendExchange::receive`].
 //!
-//! Reliability without clock agreement: every message but [`Ack`] is kept in a per-kind
-//! outbox under its sequence (per sender epoch, kind and destination) until the peer
-//! acknowledges it; unacknowledged messages are resent after `retransmit_ms` of local time
-//! and at once at the start of the next meeting. The receiver keeps, per peer epoch and
-//! kind, which sequences it processed (`next` + ranges beyond, what [`Ack`] carries), so a
-//! resent message is acknowledged again but processed once. A message is marked received
-//! only once processed: one refused for a transient reason (before the peer's Hello) is
-//! not acknowledged and comes again.
+//! Delivery is [`crate::delivery`]'s contract, the same for every kind: exactly once and
+//! in order per kind, state messages superseding those still waiting, sessions per epoch of
+//! the peer opened by a `Hello`. Back-end kinds travel under it like the rendezvous' own:
+//! the back-end hands bodies over and gets the peer's bodies, never an acknowledgement.
 
-use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
+use std::collections::{BTreeSet, HashMap, HashSet, VecDeque};
 use std::ops::Range;
 
 use doorslam_geometry::key;
 use doorslam_ipc::wire::{
     Ack, Body, Descriptor, Descriptors, Header, Hello, Kind, LoopClosure, LoopClosures, Match,
-    Matches, Message, RobotId, VerificationFeatures, MAX_ACK_RANGES, MAX_LOOP_CLOSURES,
-    MAX_MATCHES,
+    Matches, Message, RobotId, VerificationFeatures, MAX_LOOP_CLOSURES, MAX_MATCHES,
 };
+
+pub use crate::delivery::Outgoing;
+use crate::delivery::{Arrived, Delivery, DeliveryConfig, DeliveryStats};
 
 /// This robot's own place descriptors, matching and verification packets: place
 /// recognition and the front-end's keyframes, behind one trait so the protocol runs with a
@@ -82,11 +80,14 @@ pub trait BackendExchange {
     fn loop_closures(&mut self, peer: &RobotId, closures: &[LoopClosure]);
     /// Messages to send to `peer` now (called repeatedly while the peer is present and the
     /// two have exchanged Hello); each is delivered once, in order per kind, even across
-    /// meetings cut off mid-way.
+    /// meetings cut off mid-way, unless the peer restarts (a new epoch in
+    /// [`Self::presence`]) — a state message ([`Body::slot`]) may instead reach the peer
+    /// merged into the one before it that was still waiting ([`Body::supersede`]), which
+    /// leaves the peer in the same state.
     fn messages_for(&mut self, peer: &RobotId) -> Vec<Body>;
     /// A message from `peer` of a kind the rendezvous itself does not handle (pose
-    /// estimates, and any back-end kind added to the wire format), each delivered once,
-    /// with the header it came with (the peer's epoch and this kind's sequence).
+    /// estimates, and any back-end kind added to the wire format), each delivered once and
+    /// in order per kind, with the header it came with (the peer's epoch and sequence).
     fn receive(
         &mut self,
         peer: &RobotId,
@@ -103,13 +104,6 @@ pub struct Services<'a> {
     pub place: &'a mut dyn DescriptorSource,
     pub verifier: &'a mut dyn Verifier,
     pub backend: &'a mut dyn BackendExchange,
-}
-
-/// One message to send, and whether it is a resend (counted apart by the ledger).
-#[derive(Debug, Clone, PartialEq)]
-pub struct Outgoing {
-    pub message: Message,
-    pub resend: bool,
 }
 
 /// Who does what in a pair: the robot with the smaller id initiates.
@@ -152,11 +146,25 @@ pub struct ProtocolConfig {
     /// the previous batch for more keyframes: a batch's header and range are shared by its
     /// descriptors, so keyframes trickling in during a meeting are not sent one by one.
     pub batch_linger_ms: u64,
-    /// Unacknowledged messages of one kind beyond which no new descriptor batch is queued.
+    /// Messages of one kind in flight at most (the rest waits, state messages merged per
+    /// slot); no new descriptor batch is queued while this many are unsettled.
     pub window: usize,
-    /// Sequences accepted ahead of the first missing one (bounds the receiver's memory
-    /// against a peer sending huge sequences).
+    /// Messages of one kind the receiver holds back for order at most (further ahead:
+    /// dropped unacknowledged, they come again); bounds its memory against a peer.
     pub receive_window: u64,
+    /// α: verification packets of the peer kept for pairs still to come (oldest evicted
+    /// first); β re-sends a packet beyond half of it.
+    pub features_cache: usize,
+}
+
+impl ProtocolConfig {
+    fn delivery(&self) -> DeliveryConfig {
+        DeliveryConfig {
+            retransmit_ms: self.retransmit_ms,
+            window: self.window,
+            hold_back: self.receive_window,
+        }
+    }
 }
 
 impl Default for ProtocolConfig {
@@ -166,7 +174,8 @@ impl Default for ProtocolConfig {
             descriptor_batch: 16,
             batch_linger_ms: 500,
             window: 32,
-            receive_window: 4096,
+            receive_window: 64,
+            features_cache: 512,
         }
     }
 }
@@ -178,9 +187,9 @@ pub enum Refusal {
     StaleEpoch { got: u64, current: u64 },
     #[error("sequence {sequence} of kind {kind:?} already processed (acknowledged again)")]
     Duplicate { kind: Kind, sequence: u64 },
-    #[error("sequence {sequence} of kind {kind:?} beyond the receive window")]
+    #[error("sequence {sequence} of kind {kind:?} beyond the hold-back buffer (it comes again)")]
     OutOfWindow { kind: Kind, sequence: u64 },
-    #[error("{0:?} before the peer's Hello (not acknowledged: it will come again)")]
+    #[error("{0:?} before the peer's Hello opened its session (not acknowledged: it comes again)")]
     BeforeHello(Kind),
     #[error("{0:?} is not sent to a robot in this role")]
     UnexpectedKind(Kind),
@@ -228,63 +237,13 @@ pub struct PeerStats {
     pub closures_received: u64,
     pub backend_sent: u64,
     pub backend_received: u64,
-}
-
-/// Received sequences of one kind in one peer epoch: all below `next`, plus `ahead`.
-#[derive(Debug, Clone, Default)]
-struct Received {
-    next: u64,
-    ahead: BTreeSet<u64>,
-}
-
-impl Received {
-    fn contains(&self, seq: u64) -> bool {
-        seq < self.next || self.ahead.contains(&seq)
-    }
-
-    fn insert(&mut self, seq: u64) {
-        if seq == self.next {
-            self.next += 1;
-            while self.ahead.remove(&self.next) {
-                self.next += 1;
-            }
-        } else if seq > self.next {
-            self.ahead.insert(seq);
-        }
-    }
-
-    /// The ranges received beyond `next`, at most [`MAX_ACK_RANGES`] (the first ones: the
-    /// sender resends the rest, which are then acknowledged again).
-    fn ranges(&self) -> Vec<Range<u64>> {
-        let mut out: Vec<Range<u64>> = Vec::new();
-        for &s in &self.ahead {
-            match out.last_mut() {
-                Some(r) if r.end == s => r.end = s + 1,
-                _ => {
-                    if out.len() == MAX_ACK_RANGES {
-                        break;
-                    }
-                    out.push(s..s + 1);
-                }
-            }
-        }
-        out
-    }
-}
-
-#[derive(Debug, Clone)]
-struct Pending {
-    body: Body,
-    /// None: due now (new, or the start of a meeting).
-    last_sent_ms: Option<u64>,
-    sends: u32,
-}
-
-/// Unacknowledged messages of one kind, by sequence.
-#[derive(Debug, Clone, Default)]
-struct Outbox {
-    next_seq: u64,
-    pending: BTreeMap<u64, Pending>,
+    /// α: verification packets held, and dropped to stay within the cache
+    /// ([`PEER_FEATURES_CACHE`]).
+    pub features_held: u64,
+    pub features_evicted: u64,
+    /// α: putative pairs whose packet was evicted before it could verify them.
+    pub matches_unverifiable: u64,
+    pub delivery: DeliveryStats,
 }
 
 /// The protocol with one peer.
@@ -295,24 +254,29 @@ pub struct PeerSession {
     role: Role,
     config: ProtocolConfig,
     connected: bool,
-    outboxes: BTreeMap<Kind, Outbox>,
-    ack_sequence: u64,
-    hello_queued: bool,
+    delivery: Delivery,
+    /// A session towards the peer was started (at the first meeting).
+    session_started: bool,
     peer_epoch: Option<u64>,
     /// A message of the peer arrived in this meeting: its epoch is settled until the next.
     epoch_settled: bool,
     peer_robot: Option<u8>,
-    received: BTreeMap<Kind, Received>,
-    ack_due: BTreeSet<Kind>,
     // α
     descriptors_queued_below: u64,
     last_batch_ms: Option<u64>,
     pending_matches: Vec<Match>,
+    /// Verification packets received, at most `features_cache` (oldest evicted first,
+    /// unless a pair waiting for verification needs it), their arrival order, and the keys
+    /// evicted last (a pair naming one is unverifiable: β sent it once).
     peer_features: HashMap<u64, VerificationFeatures>,
+    features_order: VecDeque<u64>,
+    evicted: VecDeque<u64>,
     verified: HashSet<(u64, u64)>,
     // β
     delivered: BTreeSet<u64>,
-    features_sent: HashSet<u64>,
+    /// The last `features_cache / 2` keyframes whose packet was sent: α still holds them
+    /// (it evicts only beyond twice as many), so a pair naming one goes without it.
+    features_sent: VecDeque<u64>,
     closures_received: HashSet<(u64, u64)>,
     stats: PeerStats,
 }
@@ -328,26 +292,25 @@ impl PeerSession {
     pub fn new(me: Identity, peer: RobotId, config: ProtocolConfig) -> Self {
         let role = Role::of(&me.id, &peer);
         Self {
-            me,
+            me: me.clone(),
             peer,
             role,
             config,
             connected: false,
-            outboxes: BTreeMap::new(),
-            ack_sequence: 0,
-            hello_queued: false,
+            delivery: Delivery::new(me.id.clone(), me.robot, me.epoch, config.delivery()),
+            session_started: false,
             peer_epoch: None,
             epoch_settled: false,
             peer_robot: None,
-            received: BTreeMap::new(),
-            ack_due: BTreeSet::new(),
             descriptors_queued_below: 0,
             last_batch_ms: None,
             pending_matches: Vec::new(),
             peer_features: HashMap::new(),
+            features_order: VecDeque::new(),
+            evicted: VecDeque::new(),
             verified: HashSet::new(),
             delivered: BTreeSet::new(),
-            features_sent: HashSet::new(),
+            features_sent: VecDeque::new(),
             closures_received: HashSet::new(),
             stats: PeerStats::default(),
         }
@@ -386,10 +349,12 @@ impl PeerSession {
 
     /// Sequences of `kind` sent and not yet acknowledged.
     pub fn unacknowledged(&self, kind: Kind) -> Vec<u64> {
-        self.outboxes
-            .get(&kind)
-            .map(|o| o.pending.keys().copied().collect())
-            .unwrap_or_default()
+        self.delivery.unacknowledged(kind)
+    }
+
+    /// Nothing in flight, waiting, or to acknowledge with this peer.
+    pub fn idle(&self) -> bool {
+        self.delivery.idle()
     }
 
     /// α: every keyframe below this index has its descriptor queued (sent or to be resent).
@@ -403,11 +368,11 @@ impl PeerSession {
         self.connected = true;
         self.epoch_settled = false;
         self.stats.meetings += 1;
-        for outbox in self.outboxes.values_mut() {
-            for p in outbox.pending.values_mut() {
-                p.last_sent_ms = None;
-            }
+        if !self.session_started {
+            self.session_started = true;
+            self.delivery.start_session(self.peer_epoch, false);
         }
+        self.delivery.resend_all();
     }
 
     /// The peer's token disappeared: nothing is sent until the next meeting; all state
@@ -417,38 +382,20 @@ impl PeerSession {
     }
 
     fn queue(&mut self, body: Body) {
-        let outbox = self.outboxes.entry(body.kind()).or_default();
-        outbox.pending.insert(
-            outbox.next_seq,
-            Pending {
-                body,
-                last_sent_ms: None,
-                sends: 0,
-            },
-        );
-        outbox.next_seq += 1;
+        self.delivery.queue(body);
     }
 
-    fn header(&self, sequence: u64) -> Header {
-        Header {
-            sender: self.me.id.clone(),
-            epoch: self.me.epoch,
-            sequence,
-        }
+    fn sync_stats(&mut self) {
+        self.stats.retransmissions = self.delivery.retransmissions;
+        self.stats.delivery = self.delivery.stats.clone();
+        self.stats.features_held = self.peer_features.len() as u64;
     }
 
     /// Messages to send now: new protocol steps, acknowledgments, and resends of what is
     /// unacknowledged after `retransmit_ms`. Nothing while the peer is away.
     pub fn poll(&mut self, now_ms: u64, svc: &mut Services<'_>) -> Vec<Outgoing> {
-        let mut out = Vec::new();
         if !self.connected {
-            return out;
-        }
-        if !self.hello_queued {
-            self.queue(Body::Hello(Hello {
-                robot: self.me.robot,
-            }));
-            self.hello_queued = true;
+            return Vec::new();
         }
         if self.peer_robot.is_some() {
             if self.role == Role::Initiator {
@@ -459,62 +406,15 @@ impl PeerSession {
                 self.queue(body);
             }
         }
-        if let Some(epoch) = self.peer_epoch {
-            for kind in std::mem::take(&mut self.ack_due) {
-                let r = self.received.get(&kind).cloned().unwrap_or_default();
-                let ack = Ack {
-                    epoch,
-                    kind,
-                    next: r.next,
-                    received: r.ranges(),
-                };
-                out.push(Outgoing {
-                    message: Message::new(self.header(self.ack_sequence), ack),
-                    resend: false,
-                });
-                self.ack_sequence += 1;
-            }
-        }
-        let retransmit = self.config.retransmit_ms;
-        let mut resent = 0;
-        let mut emitted = Vec::new();
-        for outbox in self.outboxes.values_mut() {
-            for (&seq, p) in outbox.pending.iter_mut() {
-                // Exponential back-off (×2 per resend, up to ×16): on a slow radio an
-                // acknowledgment can take longer than `retransmit_ms`, and resending at a
-                // fixed rate would fill the link with copies.
-                let wait = retransmit << p.sends.saturating_sub(1).min(4);
-                let due = match p.last_sent_ms {
-                    None => true,
-                    Some(t) => now_ms.saturating_sub(t) >= wait,
-                };
-                if due {
-                    let resend = p.sends > 0;
-                    resent += u64::from(resend);
-                    p.sends = p.sends.saturating_add(1);
-                    p.last_sent_ms = Some(now_ms);
-                    emitted.push((seq, p.body.clone(), resend));
-                }
-            }
-        }
-        self.stats.retransmissions += resent;
-        for (seq, body, resend) in emitted {
-            out.push(Outgoing {
-                message: Message::new(self.header(seq), body),
-                resend,
-            });
-        }
+        let out = self.delivery.poll(now_ms, self.peer_epoch);
         self.stats.messages_sent += out.len() as u64;
+        self.sync_stats();
         out
     }
 
     fn queue_descriptors(&mut self, now_ms: u64, svc: &mut Services<'_>) {
         loop {
-            let in_flight = self
-                .outboxes
-                .get(&Kind::Descriptors)
-                .map_or(0, |o| o.pending.len());
-            if in_flight >= self.config.window {
+            if self.delivery.unsettled(Kind::Descriptors) >= self.config.window {
                 return;
             }
             let from = self.descriptors_queued_below;
@@ -542,8 +442,15 @@ impl PeerSession {
     }
 
     /// Processes one decoded message whose sender the caller checked (the key's `<from>`
-    /// equals the header's sender, and the peer is present).
-    pub fn receive(&mut self, msg: Message, svc: &mut Services<'_>) -> Result<(), Refusal> {
+    /// equals the header's sender, and the peer is present). `Err`: the message was not
+    /// taken (a stale epoch, a duplicate, before the peer's session, ...). `Ok`: taken —
+    /// held back for order, or delivered with the ones it held back; the refusals of those
+    /// (invalid, refused by the back-end) are returned, each counted by the caller.
+    pub fn receive(
+        &mut self,
+        msg: Message,
+        svc: &mut Services<'_>,
+    ) -> Result<Vec<Refusal>, Refusal> {
         let epoch = msg.header.epoch;
         match self.peer_epoch {
             Some(current) if epoch == current => {}
@@ -559,39 +466,45 @@ impl PeerSession {
                     current,
                 })
             }
-            _ => {
+            previous => {
                 // First message, or the peer restarted: its old sequences mean nothing
-                // now, and it has forgotten this robot's Hello.
+                // now, it has forgotten this robot's Hello and what this robot sent.
                 self.peer_epoch = Some(epoch);
-                self.received.clear();
-                self.ack_due.clear();
                 self.peer_robot = None;
-                if self.hello_queued && self.unacknowledged(Kind::Hello).is_empty() {
-                    self.hello_queued = false;
-                }
+                self.delivery.peer_epoch_changed();
+                self.session_started = true;
+                self.delivery.start_session(Some(epoch), previous.is_some());
             }
         }
         self.epoch_settled = true;
         let kind = msg.kind();
-        let sequence = msg.header.sequence;
-        if let Body::Ack(ack) = msg.body {
-            return self.acknowledged(&ack);
+        let header = msg.header;
+        match msg.body {
+            Body::Ack(ack) => self.acknowledged(&ack).map(|()| Vec::new()),
+            Body::Hello(h) => {
+                let sequence = header.sequence;
+                if !self.delivery.hello(sequence, &h) {
+                    return Err(Refusal::Duplicate { kind, sequence });
+                }
+                self.process_hello(&header, &h, svc).map(|()| Vec::new())
+            }
+            body => {
+                let arrived = self.delivery.arrive(header, body);
+                self.sync_stats();
+                match arrived {
+                    Arrived::Deliver(run) => Ok(run
+                        .into_iter()
+                        .filter_map(|(h, b)| self.process(&h, b, svc).err())
+                        .collect()),
+                    Arrived::Held => Ok(Vec::new()),
+                    Arrived::Duplicate { sequence } => Err(Refusal::Duplicate { kind, sequence }),
+                    Arrived::BeyondHoldBack { sequence } => {
+                        Err(Refusal::OutOfWindow { kind, sequence })
+                    }
+                    Arrived::BeforeSession => Err(Refusal::BeforeHello(kind)),
+                }
+            }
         }
-        let r = self.received.entry(kind).or_default();
-        if r.contains(sequence) {
-            self.ack_due.insert(kind);
-            return Err(Refusal::Duplicate { kind, sequence });
-        }
-        if sequence >= r.next.saturating_add(self.config.receive_window) {
-            return Err(Refusal::OutOfWindow { kind, sequence });
-        }
-        let result = self.process(&msg.header, msg.body, svc);
-        if !matches!(result, Err(Refusal::BeforeHello(_))) {
-            // Processed (or refused for good): acknowledge so it is not resent forever.
-            self.received.entry(kind).or_default().insert(sequence);
-            self.ack_due.insert(kind);
-        }
-        result
     }
 
     fn acknowledged(&mut self, ack: &Ack) -> Result<(), Refusal> {
@@ -601,24 +514,38 @@ impl PeerSession {
                 current: self.me.epoch,
             });
         }
-        let Some(outbox) = self.outboxes.get_mut(&ack.kind) else {
-            return Ok(());
-        };
-        if ack.next > outbox.next_seq || ack.received.iter().any(|r| r.end > outbox.next_seq) {
-            return Err(invalid(Kind::Ack, "acknowledges sequences never sent"));
-        }
-        let done: Vec<u64> = outbox
-            .pending
-            .keys()
-            .copied()
-            .filter(|&s| s < ack.next || ack.received.iter().any(|r| r.contains(&s)))
-            .collect();
-        for s in done {
-            if let Some(p) = outbox.pending.remove(&s) {
-                if let Body::Descriptors(d) = &p.body {
-                    self.stats.descriptors_acknowledged += d.descriptors.len() as u64;
-                }
+        let done = self
+            .delivery
+            .acknowledged(ack)
+            .map_err(|reason| invalid(Kind::Ack, reason))?;
+        for body in done {
+            if let Body::Descriptors(d) = &body {
+                self.stats.descriptors_acknowledged += d.descriptors.len() as u64;
             }
+        }
+        Ok(())
+    }
+
+    fn process_hello(
+        &mut self,
+        header: &Header,
+        h: &Hello,
+        svc: &mut Services<'_>,
+    ) -> Result<(), Refusal> {
+        if h.robot == self.me.robot {
+            return Err(invalid(
+                Kind::Hello,
+                format!(
+                    "peer {} claims this robot's key letter {}",
+                    self.peer,
+                    (b'a' + h.robot) as char
+                ),
+            ));
+        }
+        if self.peer_robot != Some(h.robot) {
+            self.peer_robot = Some(h.robot);
+            svc.backend
+                .presence(&self.peer, h.robot, header.epoch, self.connected);
         }
         Ok(())
     }
@@ -630,22 +557,6 @@ impl PeerSession {
         svc: &mut Services<'_>,
     ) -> Result<(), Refusal> {
         let kind = body.kind();
-        if let Body::Hello(h) = &body {
-            if h.robot == self.me.robot {
-                return Err(invalid(
-                    kind,
-                    format!(
-                        "peer {} claims this robot's key letter {}",
-                        self.peer,
-                        (b'a' + h.robot) as char
-                    ),
-                ));
-            }
-            self.peer_robot = Some(h.robot);
-            svc.backend
-                .presence(&self.peer, h.robot, header.epoch, self.connected);
-            return Ok(());
-        }
         let Some(peer_robot) = self.peer_robot else {
             return Err(Refusal::BeforeHello(kind));
         };
@@ -706,7 +617,7 @@ impl PeerSession {
             if !theirs(v.key) {
                 return Err(invalid(kind, "packet of a keyframe not the peer's"));
             }
-            self.peer_features.insert(v.key, v);
+            self.keep_features(v);
             self.try_verify(svc);
             Ok(())
         } else if let Body::LoopClosures(l) = &body {
@@ -737,6 +648,31 @@ impl PeerSession {
         }
     }
 
+    /// α: keeps a verification packet of the peer; beyond `features_cache`, the oldest
+    /// that no pair waits for is evicted (β sends a packet again once it is beyond half of
+    /// that in its own list, so a pair it sends later finds its packet).
+    fn keep_features(&mut self, v: VerificationFeatures) {
+        let k = v.key;
+        if self.peer_features.insert(k, v).is_some() {
+            self.features_order.retain(|x| *x != k);
+        }
+        self.features_order.push_back(k);
+        while self.peer_features.len() > self.config.features_cache {
+            let waited: BTreeSet<u64> = self.pending_matches.iter().map(|m| m.candidate).collect();
+            let Some(at) = self.features_order.iter().position(|x| !waited.contains(x)) else {
+                break;
+            };
+            if let Some(old) = self.features_order.remove(at) {
+                self.peer_features.remove(&old);
+                self.stats.features_evicted += 1;
+                self.evicted.push_back(old);
+                if self.evicted.len() > 2 * self.config.features_cache {
+                    self.evicted.pop_front();
+                }
+            }
+        }
+    }
+
     /// β: queue the putative pairs and, once per own keyframe, its verification packet
     /// (before the pairs, so α usually verifies as the pairs arrive).
     fn queue_matches(&mut self, matches: Vec<Match>, svc: &mut Services<'_>) {
@@ -748,7 +684,10 @@ impl PeerSession {
             if !self.features_sent.contains(&m.candidate) {
                 match svc.place.verification_features(m.candidate) {
                     Some(f) => {
-                        self.features_sent.insert(m.candidate);
+                        self.features_sent.push_back(m.candidate);
+                        if self.features_sent.len() > self.config.features_cache / 2 {
+                            self.features_sent.pop_front();
+                        }
                         self.queue(Body::VerificationFeatures(f));
                     }
                     None => continue,
@@ -769,7 +708,12 @@ impl PeerSession {
         let mut waiting = Vec::new();
         for m in std::mem::take(&mut self.pending_matches) {
             let Some(features) = self.peer_features.get(&m.candidate) else {
-                waiting.push(m);
+                if self.evicted.contains(&m.candidate) {
+                    // β sent it once and will not again for this pair.
+                    self.stats.matches_unverifiable += 1;
+                } else {
+                    waiting.push(m);
+                }
                 continue;
             };
             if !self.verified.insert((m.query, m.candidate)) {
@@ -797,24 +741,6 @@ impl PeerSession {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn received_ranges_compress_and_cap() {
-        let mut r = Received::default();
-        for s in [0, 1, 3, 4, 7] {
-            r.insert(s);
-        }
-        assert_eq!(r.next, 2);
-        assert_eq!(r.ranges(), vec![3..5, 7..8]);
-        r.insert(2);
-        assert_eq!(r.next, 5);
-        assert!(r.contains(4) && !r.contains(5) && r.contains(7));
-        let mut r = Received::default();
-        for s in 0..200 {
-            r.insert(1 + 2 * s);
-        }
-        assert_eq!(r.ranges().len(), MAX_ACK_RANGES);
-    }
 
     #[test]
     fn roles_follow_ids() {

@@ -28,7 +28,8 @@ fn config() -> ProtocolConfig {
         descriptor_batch: 16,
         batch_linger_ms: 100,
         window: 4,
-        receive_window: 4096,
+        receive_window: 64,
+        features_cache: 512,
     }
 }
 
@@ -273,7 +274,11 @@ fn unknown_garbage_wrong_sender_and_replayed_messages_are_dropped_and_counted() 
                 epoch: 1,
                 sequence: 0,
             },
-            Hello { robot: 2 },
+            Hello {
+                robot: 2,
+                heard: None,
+                base: 0,
+            },
         )
         .encode()
         .unwrap()
@@ -305,7 +310,11 @@ fn unknown_garbage_wrong_sender_and_replayed_messages_are_dropped_and_counted() 
             epoch: 0,
             sequence: 99,
         },
-        Hello { robot: 0 },
+        Hello {
+            robot: 0,
+            heard: None,
+            base: 0,
+        },
     );
     bus.inject(&idb, &ida, "hello", old.encode().unwrap());
     // A message under the wrong kind in its key.
@@ -367,7 +376,11 @@ fn an_epoch_claim_lasts_until_the_peers_next_appearance() {
             epoch: 2,
             sequence: 0,
         },
-        Hello { robot: 0 },
+        Hello {
+            robot: 0,
+            heard: None,
+            base: 0,
+        },
     );
     bus.inject(&idb, &ida, "hello", replay.encode().unwrap());
     run(&mut [&mut a, &mut b], &mut now, 3);

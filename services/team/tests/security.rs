@@ -157,7 +157,11 @@ fn forged_hello(sender: &str) -> Vec<u8> {
             epoch: u64::MAX,
             sequence: 0,
         },
-        Hello { robot: 0 },
+        Hello {
+            robot: 0,
+            heard: None,
+            base: 0,
+        },
     )
     .encode()
     .unwrap()

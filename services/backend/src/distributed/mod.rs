@@ -69,8 +69,8 @@ use crate::solver::{SolveError, SolverOptions};
 use doorslam_geometry::information::{check_information, InformationCheck, InformationError};
 use doorslam_geometry::{key, LieGroup, TangentMatrix, SE3};
 use doorslam_ipc::wire::{
-    Body, CompactPose, Estimate, Header, Kind, Message, PoseEstimate, PoseEstimates, QuantizeError,
-    RelaxedRotation, RobotId, Stage, ESTIMATES_CONVERGED, MAX_POSE_ESTIMATES,
+    Ack, Body, CompactPose, Estimate, Header, Kind, Message, PoseEstimate, PoseEstimates,
+    QuantizeError, RelaxedRotation, RobotId, Stage, ESTIMATES_CONVERGED, MAX_POSE_ESTIMATES,
 };
 
 use local::{Fixed, OwnClosure, OwnEdge};
@@ -165,6 +165,12 @@ pub struct AgentOptions {
     /// Condensed method: send a neighbour that holds an older version of a graph only the
     /// key pairs that changed (false: always the whole graph, to measure the difference).
     pub graph_updates: bool,
+    /// The transport delivers every message exactly once and in order per kind (the team
+    /// link's delivery contract, `doorslam-team`'s `delivery`): a message handed over is
+    /// settled at once as delivered ([`Agent::messages_for`]), the agent sends no
+    /// acknowledgements and waits for none. False: the agent's own acknowledgements and
+    /// resends over a lossy transport.
+    pub link_delivers: bool,
 }
 
 /// The distributed solver.
@@ -198,6 +204,7 @@ impl Default for AgentOptions {
             method: Method::default(),
             pcm: None,
             graph_updates: true,
+            link_delivers: false,
             // Each leaves out changes worth at most this fraction of the χ² in total (per
             // segment / separator times their count): 1e-5, ten times below the 1e-4 the
             // distributed estimate must stay within.
@@ -244,6 +251,30 @@ struct Neighbor {
     team: team::TeamLink,
     /// The team-map exchange with this neighbour.
     map: map::MapLink,
+}
+
+impl Neighbor {
+    /// DGS: the messages in flight whose sequence `acked` are delivered (the neighbour
+    /// holds what they carried); one not acknowledged while a later one was is lost (its
+    /// separators are due again). The number lost.
+    fn settle(&mut self, acked: impl Fn(u64) -> bool) -> u64 {
+        let highest = self.in_flight.keys().copied().filter(|&s| acked(s)).max();
+        let seqs: Vec<u64> = self.in_flight.keys().copied().collect();
+        let mut lost = 0;
+        for s in seqs {
+            if acked(s) {
+                if let Some((_, sent)) = self.in_flight.remove(&s) {
+                    self.confirmed.flags = sent.flags.or(self.confirmed.flags);
+                    self.confirmed.rotations.extend(sent.rotations);
+                    self.confirmed.poses.extend(sent.poses);
+                }
+            } else if highest.is_some_and(|h| s < h) {
+                self.in_flight.remove(&s);
+                lost += 1;
+            }
+        }
+        lost
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -995,11 +1026,45 @@ impl Agent {
             Method::Dgs => self.dgs_messages_for(neighbor)?,
         };
         out.extend(self.map_messages_for(neighbor)?);
+        if self.options.link_delivers {
+            out.retain(|m| !matches!(m.body, Body::Ack(_)));
+            for m in &out {
+                self.handed_over(neighbor, m)?;
+            }
+        }
         for m in &out {
             self.stats.messages_sent += 1;
             self.stats.bytes_sent += m.encoded_len() as u64;
         }
         Ok(out)
+    }
+
+    /// Under [`AgentOptions::link_delivers`]: `m` is handed to a transport that delivers
+    /// it to `neighbor` exactly once, after every earlier message of its kind, so what it
+    /// carries is what the neighbour holds once the transport is through — settled here as
+    /// delivered, with the same bookkeeping as an acknowledgement of it and every earlier
+    /// message of its kind. No message of the neighbour is made up: this is the agent's
+    /// own record of what it handed over.
+    fn handed_over(&mut self, neighbor: u8, m: &Message) -> Result<(), DpgoError> {
+        let through = Ack {
+            epoch: self.epoch,
+            kind: m.kind(),
+            next: m.header.sequence + 1,
+            received: Vec::new(),
+        };
+        match m.kind() {
+            Kind::TeamMap => self.map_ack(neighbor, &through).map(drop),
+            _ if self.options.method == Method::Condensed => {
+                self.team_ack(neighbor, &through).map(drop)
+            }
+            Kind::PoseEstimates => {
+                if let Some(n) = self.neighbors.get_mut(&neighbor) {
+                    n.settle(|s| s < through.next);
+                }
+                Ok(())
+            }
+            _ => Ok(()),
+        }
     }
 
     fn dgs_messages_for(&mut self, neighbor: u8) -> Result<Vec<Message>, DpgoError> {
@@ -1190,21 +1255,7 @@ impl Agent {
                     n.confirmed_epoch = Some(h.epoch);
                 }
                 let acked = |s: u64| s < a.next || a.received.iter().any(|r| r.contains(&s));
-                let highest = n.in_flight.keys().copied().filter(|&s| acked(s)).max();
-                let seqs: Vec<u64> = n.in_flight.keys().copied().collect();
-                for s in seqs {
-                    if acked(s) {
-                        if let Some((_, sent)) = n.in_flight.remove(&s) {
-                            n.confirmed.flags = sent.flags.or(n.confirmed.flags);
-                            n.confirmed.rotations.extend(sent.rotations);
-                            n.confirmed.poses.extend(sent.poses);
-                        }
-                    } else if highest.is_some_and(|h| s < h) {
-                        // A later message arrived and this one did not: lost.
-                        n.in_flight.remove(&s);
-                        self.stats.resent += 1;
-                    }
-                }
+                self.stats.resent += n.settle(acked);
                 Ok(true)
             }
             Body::PoseEstimates(p) => {

@@ -25,6 +25,37 @@ use crate::init::Chordal;
 use crate::outliers::{Pcm, Scope};
 use crate::solver::{optimize, SolverOptions};
 
+/// A transport between the agents other than the runner's own (which drops each message
+/// with [`RunOptions::drop`] and delivers the rest at once): e.g. the team link's
+/// `PeerSession`s over a faulty emulated radio (`doorslam-hil`'s `dpgo_link`). The agents
+/// then run with [`AgentOptions::link_delivers`] when the transport keeps its contract.
+pub trait Transport {
+    /// Whether robots `a` and `b` are in range this round (called every round for each
+    /// pair of neighbours; a change starts or ends a meeting).
+    fn presence(&mut self, a: u8, b: u8, present: bool);
+    /// A message of `from`'s agent for `to`'s.
+    fn send(&mut self, from: u8, to: u8, message: Message) -> Result<(), DpgoError>;
+    /// One round of the radio: what arrives at the agents now, as (to, from, message).
+    fn deliver(&mut self) -> Result<Vec<(u8, u8, Message)>, DpgoError>;
+    /// Nothing in flight or waiting (the run may end).
+    fn idle(&self) -> bool;
+    /// What went on the radio: messages, bytes, and both per kind, dropped messages.
+    fn sent(&self) -> TransportCounts;
+}
+
+/// What a [`Transport`] put on the radio (every copy, resends and acknowledgements
+/// included).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct TransportCounts {
+    pub messages: u64,
+    pub bytes: u64,
+    pub bytes_by_kind: BTreeMap<String, u64>,
+    pub messages_by_kind: BTreeMap<String, u64>,
+    pub dropped: u64,
+    pub resent: u64,
+    pub refused: u64,
+}
+
 /// How the team is played.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RunOptions {
@@ -131,7 +162,7 @@ pub struct RunReport {
 
 /// The robot ids on the wire: the key letter.
 /// (Robot ids are lower case: robots past 'z' are `r26`, `r27`, ...)
-fn robot_id(robot: u8) -> Result<RobotId, DpgoError> {
+pub fn robot_id(robot: u8) -> Result<RobotId, DpgoError> {
     let id = match key::robot_char(robot) {
         Ok(c) if c.is_ascii_lowercase() => c.to_string(),
         _ => format!("r{robot}"),
@@ -424,6 +455,15 @@ fn centralized_bytes(
 
 /// Plays the team of a merged multi-robot graph and compares with the centralized optimum.
 pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, DpgoError> {
+    run_over(graph, options, None)
+}
+
+/// [`run`] over `transport` (None: the runner's own lossy delivery).
+pub fn run_over(
+    graph: &PoseGraph<SE3>,
+    options: &RunOptions,
+    mut transport: Option<&mut dyn Transport>,
+) -> Result<RunReport, DpgoError> {
     let start = Instant::now();
     let (parts, closures) = split(graph)?;
     let centralized = centralized_bytes(&parts, &closures)?;
@@ -533,6 +573,9 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
                 if let Some(a) = agents.get_mut(&r) {
                     a.set_present(*n, present);
                 }
+                if let Some(t) = transport.as_deref_mut() {
+                    t.presence(r, *n, present);
+                }
             }
         }
         for (&r, &at) in &options.team_map {
@@ -556,6 +599,12 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
                     continue;
                 }
                 let out = agents.get_mut(&r).map(|a| a.messages_for(n)).transpose()?;
+                if let Some(t) = transport.as_deref_mut() {
+                    for m in out.unwrap_or_default() {
+                        t.send(r, n, m)?;
+                    }
+                    continue;
+                }
                 for m in out.unwrap_or_default() {
                     let bytes_m = m.encode().map_err(|e| DpgoError::BadMessage {
                         from: r,
@@ -582,6 +631,16 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
                 }
             }
         }
+        if let Some(t) = transport.as_deref_mut() {
+            for (to, from, m) in t.deliver()? {
+                if let Some(peer) = agents.get_mut(&to) {
+                    if peer.receive(from, &m).is_err() {
+                        refused += 1;
+                    }
+                }
+            }
+        }
+        let link_idle = transport.as_deref().is_none_or(|t| t.idle());
         let all_joined = robots.iter().all(|&r| joined(r, round));
         let outage_over = options.outage.values().all(|o| round >= o.end);
         let maps_asked = options.team_map.values().all(|&at| round >= at);
@@ -592,6 +651,7 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
             && all_fed
             && outage_over
             && maps_asked
+            && link_idle
             && closures_added.iter().all(|a| *a)
             && agents
                 .values()
@@ -669,6 +729,14 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
         },
     };
     let stats: Vec<_> = agents.values().map(|a| a.stats()).collect();
+    let mut resent_link = 0;
+    if let Some(t) = transport.as_deref() {
+        let c = t.sent();
+        (messages, bytes, dropped) = (c.messages, c.bytes, c.dropped);
+        (bytes_by_kind, messages_by_kind) = (c.bytes_by_kind, c.messages_by_kind);
+        resent_link = c.resent;
+        refused += c.refused;
+    }
     let separators = {
         let mut s: Vec<u64> = closures.iter().flat_map(|c| [c.0, c.1]).collect();
         s.sort_unstable();
@@ -705,7 +773,7 @@ pub fn run(graph: &PoseGraph<SE3>, options: &RunOptions) -> Result<RunReport, Dp
         stop_reason,
         settled: converged,
         dropped,
-        resent: stats.iter().map(|s| s.resent).sum(),
+        resent: resent_link + stats.iter().map(|s| s.resent).sum::<u64>(),
         refused: refused + stats.iter().map(|s| s.refused).sum::<u64>(),
         reinitializations: stats.iter().map(|s| s.reinitializations).sum(),
         separators,

@@ -128,8 +128,15 @@ pub(crate) struct TeamLink {
     graph_rx: Received,
     /// In flight: (origin, graph as the message leaves the neighbour holding it).
     graph_out: Outbox<(u8, Held)>,
-    /// Graphs the neighbour is known to hold (acknowledged).
+    /// Graphs the neighbour is known to hold (acknowledged, or received from it).
     graphs_held: BTreeMap<u8, Held>,
+    /// The last graph of each origin this robot delivered on this link: the base of the
+    /// updates it sends (the neighbour may hold a newer one from elsewhere, but it keeps
+    /// this one as the base of this link's updates, `graphs_rx` on its side).
+    graphs_sent: BTreeMap<u8, Held>,
+    /// The last graph of each origin received on this link: what the neighbour's updates
+    /// apply to (whatever this robot holds from elsewhere).
+    graphs_rx: BTreeMap<u8, Held>,
     est_rx: Received,
     /// In flight: (robot, what the message carried).
     est_out: Outbox<(u8, Solution)>,
@@ -155,6 +162,8 @@ impl TeamLink {
         self.route_held = None;
         self.graph_out.clear();
         self.graphs_held.clear();
+        self.graphs_sent.clear();
+        self.graphs_rx.clear();
         self.est_out.clear();
         self.est_held.clear();
     }
@@ -171,6 +180,7 @@ impl TeamLink {
         for (o, _) in graphs {
             self.graph_out.forget(|(x, _)| x == o);
             self.graphs_held.remove(o);
+            self.graphs_sent.remove(o);
         }
         for (r, carried) in estimates {
             match self.est_held.get_mut(r) {
@@ -196,6 +206,17 @@ impl TeamLink {
     /// The route as the neighbour holds it or will once what is in flight arrives.
     fn route_view(&self) -> Option<&Route> {
         self.route_out.items().last().or(self.route_held.as_ref())
+    }
+
+    /// The base of an update of `origin`'s graph on this link: the last one sent (in
+    /// flight or delivered).
+    fn graph_base(&self, origin: u8) -> Option<&Held> {
+        self.graph_out
+            .items()
+            .filter(|(o, _)| *o == origin)
+            .map(|(_, h)| h)
+            .last()
+            .or(self.graphs_sent.get(&origin))
     }
 
     fn graph_view(&self, origin: u8) -> Option<&Held> {
@@ -841,7 +862,8 @@ impl Agent {
                 if view.is_some_and(|v| v.version >= held.version) {
                     continue;
                 }
-                graphs.push((o, held.clone(), view.cloned()));
+                let base = n.and_then(|l| l.graph_base(o));
+                graphs.push((o, held.clone(), base.cloned()));
             }
         }
         // Estimates of the child's subtree, to a child.
@@ -993,37 +1015,55 @@ impl Agent {
                     self.stats.refused += 1;
                     return Err(refuse("an update removing another robot's edges".into()));
                 }
-                let held = self.team.graphs.get(&g.origin);
-                let new = match held {
+                let Some(l) = self.neighbors.get_mut(&neighbor).map(|n| &mut n.team) else {
+                    return Ok(false);
+                };
+                // An update applies to the last graph of its origin this link carried
+                // (the sender's base), whatever this robot holds from elsewhere.
+                let received = match l.graphs_rx.get(&g.origin) {
                     Some(h) if h.version >= g.version => None,
                     _ if g.base == 0 => Some(edges),
                     Some(h) if h.version == g.base => {
                         Some(apply_delta(&h.edges, &g.removed, &edges))
                     }
-                    // An update of a version we do not hold: not acknowledged, so the
-                    // sender takes it as lost and sends what we can apply.
+                    // An update of a version this link never carried (only after a loss
+                    // the sender took for a delivery): not acknowledged, so the sender
+                    // takes it as lost and sends the whole graph.
                     _ => {
                         self.stats.ignored_stale += 1;
                         return Ok(false);
                     }
                 };
-                let Some(l) = self.neighbors.get_mut(&neighbor).map(|n| &mut n.team) else {
-                    return Ok(false);
-                };
                 if l.graph_rx.arrive(h.epoch, h.sequence) == Arrival::Stale {
                     self.stats.ignored_stale += 1;
                     return Ok(false);
                 }
-                let Some(edges) = new else {
+                let Some(edges) = received else {
                     self.stats.ignored_stale += 1;
                     return Ok(false);
                 };
-                // The sender holds it: it never needs it back.
                 let held = Held {
                     version: g.version,
                     edges: Arc::new(edges),
                 };
-                l.graphs_held.insert(g.origin, held.clone());
+                l.graphs_rx.insert(g.origin, held.clone());
+                // The sender holds it: it never needs it back.
+                if l.graphs_held
+                    .get(&g.origin)
+                    .is_none_or(|x| x.version < held.version)
+                {
+                    l.graphs_held.insert(g.origin, held.clone());
+                }
+                if self
+                    .team
+                    .graphs
+                    .get(&g.origin)
+                    .is_some_and(|x| x.version >= held.version)
+                {
+                    // Newer from elsewhere already.
+                    self.stats.ignored_stale += 1;
+                    return Ok(false);
+                }
                 self.team.graphs.insert(g.origin, held);
                 self.team.fresh = true;
                 Ok(true)
@@ -1088,7 +1128,7 @@ impl Agent {
         }
     }
 
-    fn team_ack(&mut self, neighbor: u8, a: &Ack) -> Result<bool, DpgoError> {
+    pub(crate) fn team_ack(&mut self, neighbor: u8, a: &Ack) -> Result<bool, DpgoError> {
         let Some(l) = self.neighbors.get_mut(&neighbor).map(|n| &mut n.team) else {
             return Ok(false);
         };
@@ -1107,8 +1147,9 @@ impl Agent {
                 l.lost(0, &s.lost, &[]);
                 for (o, h) in s.delivered {
                     if l.graphs_held.get(&o).is_none_or(|x| x.version < h.version) {
-                        l.graphs_held.insert(o, h);
+                        l.graphs_held.insert(o, h.clone());
                     }
+                    l.graphs_sent.insert(o, h);
                 }
                 s.lost.len()
             }

@@ -2,15 +2,16 @@
 //! relay with the team link (iceoryx2 topics `team-in` / `team-out`, one
 //! [`doorslam_ipc::WireEnvelope`] per event or message).
 //!
-//! The team link is the transport: it delivers every message it takes to the peer once
-//! (acknowledged and resent across meetings, see `doorslam-team`'s protocol), so the
-//! agent's own acknowledgements are not sent over the radio. Instead each message handed
-//! to the team link is acknowledged to the agent at once, in the peer's name and epoch
-//! (what the agent would have received from the peer), and the agent's own `Ack`s are
-//! dropped. Two cases break "delivered once", and both are announced by the ends of the
-//! relay: the team link restarted (messages it held are gone: [`EnvelopeEvent::TeamStarted`]
-//! makes the agent send everything again) and a peer's team link restarted (a new epoch in
-//! its Hello: the agent sees it in the next message's header and sends everything again).
+//! The team link is the transport, under its delivery contract (`doorslam-team`'s
+//! `delivery`): every message it takes reaches the peer exactly once, in order per kind,
+//! across meetings cut off mid-way. So the agent runs with
+//! [`AgentOptions::link_delivers`]: it settles what it hands over as delivered and sends
+//! no acknowledgements of its own; nothing is acknowledged in a peer's name. Two cases
+//! break "delivered", and both are announced by the ends of the relay: the team link
+//! restarted (messages it held are gone: [`EnvelopeEvent::TeamStarted`] makes the agent
+//! send everything again) and a peer's team link restarted (a new epoch in its Hello,
+//! reported in [`EnvelopeEvent::PeerPresent`]: the peer's link dropped the state messages
+//! it held, so the agent sends everything again).
 //! A restart of this back-end is announced to the team link
 //! ([`EnvelopeEvent::BackendStarted`]), which starts a new epoch of its own so that peers
 //! send their state again.
@@ -20,7 +21,7 @@
 use std::collections::BTreeMap;
 
 use doorslam_geometry::{key, TangentMatrix, SE3};
-use doorslam_ipc::wire::{Ack, Body, Header, Message, RobotId};
+use doorslam_ipc::wire::{Message, RobotId};
 use doorslam_ipc::EnvelopeEvent;
 
 use crate::distributed::{Agent, AgentOptions, AgentStats, DpgoError};
@@ -89,6 +90,10 @@ impl TeamBridge {
     /// The bridge of robot `robot` (0 = 'a') with wire id `id`; `epoch` must grow at every
     /// start of the back-end (see `super::next_epoch`).
     pub fn new(robot: u8, id: RobotId, epoch: u64, options: AgentOptions) -> Self {
+        let options = AgentOptions {
+            link_delivers: true,
+            ..options
+        };
         Self {
             agent: Agent::new(robot, id, epoch, options),
             robot,
@@ -201,8 +206,10 @@ impl TeamBridge {
                 let present = event == EnvelopeEvent::PeerPresent;
                 let peer = self.peers.entry(r).or_insert(Peer { epoch, present });
                 peer.present = present;
-                if present {
+                if present && peer.epoch != epoch {
+                    // The peer's team link restarted: what its old session held is gone.
                     peer.epoch = epoch;
+                    self.agent.link_restarted(r);
                 }
                 self.agent.set_present(r, present);
                 self.dirty = true;
@@ -247,21 +254,13 @@ impl TeamBridge {
         Ok(solved)
     }
 
-    /// The messages to hand to the team link now, encoded, per peer robot. Each is
-    /// acknowledged to the agent at once (see the module documentation).
+    /// The messages to hand to the team link now, encoded, per peer robot (the agent
+    /// settles each as delivered: see the module documentation).
     pub fn outgoing(&mut self) -> Result<Vec<(u8, Vec<u8>)>, DpgoError> {
         let mut out = Vec::new();
-        let present: Vec<(u8, u64)> = self
-            .peers
-            .iter()
-            .filter(|(_, p)| p.present)
-            .map(|(r, p)| (*r, p.epoch))
-            .collect();
-        for (r, peer_epoch) in present {
+        let present: Vec<u8> = self.present().collect();
+        for r in present {
             for m in self.agent.messages_for(r)? {
-                if matches!(m.body, Body::Ack(_)) {
-                    continue;
-                }
                 let bytes = match m.encode() {
                     Ok(b) => b,
                     Err(e) => {
@@ -270,8 +269,6 @@ impl TeamBridge {
                         continue;
                     }
                 };
-                let ack = synthetic_ack(r, peer_epoch, self.epoch, &m);
-                self.agent.receive(r, &ack)?;
                 self.stats.messages_out += 1;
                 self.stats.bytes_out += bytes.len() as u64;
                 out.push((r, bytes));
@@ -285,24 +282,4 @@ impl TeamBridge {
     pub fn estimate(&self) -> impl Iterator<Item = (u64, &SE3)> + '_ {
         self.agent.estimate()
     }
-}
-
-/// The acknowledgement the peer `r` would send for `m`: in its name and team-link epoch,
-/// for this agent's epoch, covering every sequence of `m`'s kind up to `m`'s.
-fn synthetic_ack(r: u8, peer_epoch: u64, own_epoch: u64, m: &Message) -> Message {
-    // The agent reads the epoch and sequences of an acknowledgement, not its sender.
-    let sender = RobotId::new(&format!("robot{r}")).unwrap_or_else(|_| m.header.sender.clone());
-    Message::new(
-        Header {
-            sender,
-            epoch: peer_epoch,
-            sequence: m.header.sequence,
-        },
-        Body::Ack(Ack {
-            epoch: own_epoch,
-            kind: m.kind(),
-            next: m.header.sequence + 1,
-            received: Vec::new(),
-        }),
-    )
 }
