@@ -725,8 +725,19 @@ fn place_eval_prints_the_documented_fields_and_names_a_missing_model() {
     assert!(std::fs::read_to_string(&svg).unwrap().contains("<polyline"));
 
     // --verify: the whole candidate chain on the small team, the fields.
+    let svg = dir.path().join("pr_verify.svg");
     let out = doorslam(&[
-        "place", "eval", town, "--method", "bow", "--verify", "--top-k", "3", "--json",
+        "place",
+        "eval",
+        town,
+        "--method",
+        "bow",
+        "--verify",
+        "--top-k",
+        "3",
+        "--json",
+        "--svg",
+        svg.to_str().unwrap(),
     ]);
     assert!(out.status.success(), "{}", stderr(&out));
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).expect("one JSON object");
