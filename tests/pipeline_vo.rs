@@ -224,7 +224,9 @@ fn camera_frontend_backend_follow_the_ground_truth() {
         o.trajectory.len(),
         100.0 * end / distance
     );
-    assert!(o.trajectory.len() >= 25, "{} keyframes", o.trajectory.len());
+    // `doorslam vo` on the clip makes 17 keyframes (one every ~3.5 m); a frame dropped
+    // under load may merge two.
+    assert!(o.trajectory.len() >= 14, "{} keyframes", o.trajectory.len());
     assert!(distance > 40.0, "{distance} m");
     // `doorslam vo` on the same clip: 0.98 % end-point drift, 0.13 m ATE. The pipeline
     // may drop a frame under load (frames are lossy): bounds with room for that.
