@@ -104,12 +104,16 @@ pub fn next_epoch(dir: &std::path::Path, name: &str) -> Result<u64, EpochError> 
         Err(e) => return Err(fail(e.to_string())),
     };
     // A counter at the top of the range is a corrupted file, not a restart count: refused
-    // (never wrapped to 0, which every peer would take for a stale replay).
-    let epoch = previous.checked_add(1).ok_or_else(|| {
-        fail(format!(
-            "epoch {previous} cannot be incremented: remove the file to start at 1"
-        ))
-    })?;
+    // (never wrapped to 0, which every peer would take for a stale replay). u64::MAX itself
+    // is never an epoch: a team-link Hello names the peer's epoch as epoch + 1.
+    let epoch = previous
+        .checked_add(1)
+        .filter(|e| *e < u64::MAX)
+        .ok_or_else(|| {
+            fail(format!(
+                "epoch {previous} cannot be incremented: remove the file to start at 1"
+            ))
+        })?;
     let tmp = path.with_extension("tmp");
     std::fs::write(&tmp, format!("{epoch}\n")).map_err(|e| fail(e.to_string()))?;
     std::fs::rename(&tmp, &path).map_err(|e| fail(e.to_string()))?;

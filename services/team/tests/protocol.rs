@@ -342,7 +342,8 @@ fn unknown_garbage_wrong_sender_and_replayed_messages_are_dropped_and_counted() 
 #[test]
 fn an_epoch_claim_lasts_until_the_peers_next_appearance() {
     let bus = Bus::new(0.0, 13);
-    let mut a = robot_in_epoch(&bus, "a", 0, 40, u64::MAX);
+    // A huge epoch (the largest one a Hello can name: the epoch file never gives u64::MAX).
+    let mut a = robot_in_epoch(&bus, "a", 0, 40, u64::MAX - 1);
     let mut b = robot(&bus, "b", 1, 40);
     let (ida, idb) = (a.id.clone(), b.id.clone());
     let mut now = 0;
