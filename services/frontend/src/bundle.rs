@@ -15,7 +15,7 @@ use nalgebra::{DMatrix, DVector, Matrix3, Matrix3x6, Matrix6, Matrix6x3, Vector3
 use doorslam_dataset::StereoCalibration;
 use doorslam_geometry::{inverse_action_jacobian, LieGroup, TangentMatrix, SE3};
 
-use crate::refine::Noise;
+use crate::refine::{project_stereo, Noise, StereoProjection};
 
 /// One keyframe's measurement of one point.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -49,9 +49,6 @@ pub(crate) struct Adjusted {
     pub point_covariances: Vec<Matrix3<f64>>,
 }
 
-/// Points closer than this to the camera plane (m) are not projected.
-const MIN_DEPTH_M: f64 = 0.05;
-
 struct Linear {
     r: Vector3<f64>,
     /// `S⁻¹`, with the third row and column zero for a two-row observation.
@@ -68,29 +65,7 @@ fn linearize(
     x: &Vector3<f64>,
     o: &BundleObservation,
 ) -> Option<Linear> {
-    let rt = pose.rotation.to_rotation_matrix().into_inner().transpose();
-    let p = rt * (x - pose.translation.vector);
-    if p.z < MIN_DEPTH_M {
-        return None;
-    }
-    let (fx, fy, b) = (calib.fx, calib.fy, calib.baseline_m);
-    let iz = 1.0 / p.z;
-    let h = Vector3::new(
-        fx * p.x * iz + calib.cx,
-        fy * p.y * iz + calib.cy,
-        fx * b * iz,
-    );
-    let dh = Matrix3::new(
-        fx * iz,
-        0.0,
-        -fx * p.x * iz * iz,
-        0.0,
-        fy * iz,
-        -fy * p.y * iz * iz,
-        0.0,
-        0.0,
-        -fx * b * iz * iz,
-    );
+    let StereoProjection { rt, p, h, dh } = project_stereo(calib, pose, x)?;
     let (sp, sd) = (
         noise.pixel_sigma_px.powi(-2),
         noise.disparity_sigma_px.powi(-2),

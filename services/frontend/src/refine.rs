@@ -106,14 +106,23 @@ struct Linearized {
 /// Points closer than this to the camera plane (m) are not projected.
 const MIN_DEPTH_M: f64 = 0.05;
 
-fn linearize(
+/// A world point seen by the rectified stereo camera at `pose` (camera to world): the
+/// rotation world to camera `rt`, the point in the camera frame `p`, its measurement
+/// h = (u, v, disparity) and ∂h/∂p. `None` for points behind or on the camera plane.
+pub(crate) struct StereoProjection {
+    pub rt: Matrix3<f64>,
+    pub p: Vector3<f64>,
+    pub h: Vector3<f64>,
+    pub dh: Matrix3<f64>,
+}
+
+pub(crate) fn project_stereo(
     calib: &StereoCalibration,
-    noise: &Noise,
     pose: &SE3,
-    c: &Correspondence,
-) -> Option<Linearized> {
-    let rt = pose.rotation.to_rotation_matrix().matrix().transpose();
-    let p = rt * (c.point - pose.translation.vector);
+    x: &Vector3<f64>,
+) -> Option<StereoProjection> {
+    let rt = pose.rotation.to_rotation_matrix().into_inner().transpose();
+    let p = rt * (x - pose.translation.vector);
     if p.z < MIN_DEPTH_M {
         return None;
     }
@@ -135,6 +144,16 @@ fn linearize(
         0.0,
         -fx * b * iz * iz,
     );
+    Some(StereoProjection { rt, p, h, dh })
+}
+
+fn linearize(
+    calib: &StereoCalibration,
+    noise: &Noise,
+    pose: &SE3,
+    c: &Correspondence,
+) -> Option<Linearized> {
+    let StereoProjection { rt, p, h, dh } = project_stereo(calib, pose, &c.point)?;
     let s = noise.measurement();
     let a = dh * rt;
     let cov = s + a * c.point_covariance * a.transpose();
