@@ -244,7 +244,15 @@ impl Delivery {
     /// of its slot still waiting.
     pub fn queue(&mut self, body: Body) {
         let slot = body.slot();
-        let outbox = self.outboxes.entry(body.kind()).or_default();
+        // A kind first sent in this session numbers from the session's base, as the peer's
+        // inbox expects (its Hello said so): from 0 it would take them for duplicates of an
+        // older session and never deliver them (a restarted peer's first back-end message
+        // lost for good).
+        let base = self.base;
+        let outbox = self.outboxes.entry(body.kind()).or_insert_with(|| Outbox {
+            next_seq: base,
+            ..Outbox::default()
+        });
         if let Some(s) = slot {
             if let Some((_, waiting)) = outbox.waiting.iter_mut().find(|(x, _)| *x == Some(s)) {
                 match waiting.supersede(body) {
@@ -478,5 +486,74 @@ impl Delivery {
             inbox.next += 1;
         }
         Arrived::Deliver(run)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use doorslam_ipc::wire::{LoopClosures, Route};
+
+    fn config() -> DeliveryConfig {
+        DeliveryConfig {
+            retransmit_ms: 100,
+            window: 8,
+            hold_back: 64,
+        }
+    }
+
+    fn closures() -> Body {
+        Body::LoopClosures(LoopClosures {
+            closures: Vec::new(),
+        })
+    }
+
+    /// The demo's rejoin fault: a peer restarts while this robot has only sent one kind
+    /// (its first session's sequences make the new session's base > 0); the first message
+    /// of a kind this robot never sent before (the back-end's route) must reach the
+    /// restarted peer, numbered from the base its Hello announced.
+    #[test]
+    fn a_kind_first_sent_after_a_restart_of_the_peer_is_delivered() {
+        let me = RobotId::new("a").unwrap();
+        let mut a = Delivery::new(me, 0, 1, config());
+        a.start_session(Some(1), false);
+        for _ in 0..3 {
+            a.queue(closures());
+        }
+        assert_eq!(a.poll(0, Some(1)).len(), 4, "a Hello and three messages");
+        // The peer restarts (epoch 2): a new session, and then the first route.
+        a.peer_epoch_changed();
+        a.start_session(Some(2), true);
+        a.queue(Body::Route(Route {
+            path: vec![0],
+            subtree: 0,
+            session: 0,
+        }));
+        let out = a.poll(1, Some(2));
+        let mut b = Delivery::new(RobotId::new("b").unwrap(), 1, 2, config());
+        let mut delivered = Vec::new();
+        for o in out {
+            let m = o.message;
+            match m.body {
+                Body::Hello(h) => assert!(b.hello(m.header.sequence, &h)),
+                body => {
+                    if let Arrived::Deliver(run) = b.arrive(m.header, body) {
+                        delivered.extend(run.into_iter().map(|(_, b)| b.kind()));
+                    }
+                }
+            }
+        }
+        assert_eq!(
+            delivered.iter().filter(|k| **k == Kind::Route).count(),
+            1,
+            "the route reaches the restarted peer: {delivered:?}"
+        );
+        assert_eq!(
+            delivered
+                .iter()
+                .filter(|k| **k == Kind::LoopClosures)
+                .count(),
+            3
+        );
     }
 }
