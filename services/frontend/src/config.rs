@@ -52,6 +52,14 @@ pub struct VoConfig {
     pub translation_sigma_m: f64,
     /// ... and a translation error per axis growing with the edge's length (m per m).
     pub translation_sigma_per_m: f64,
+    /// The camera's longest exposure (s): motion blur makes an image show the camera's
+    /// mean pose over the exposure, not the mid-exposure pose its stamp names. The two
+    /// differ when the rotation rate changes within the exposure (a turn starting or
+    /// stopping: up to `|Δω| · exposure / 8`), an error every feature of the keyframe
+    /// shares. Each keyframe's rotation gets that σ along its rotation axis, with `|Δω|`
+    /// up to its angular speed; 0 for a camera that does not blur (BENCHMARKS.md, "Stereo
+    /// VO at drone speed": the NEES of fast turns).
+    pub blur_exposure_s: f64,
     /// Landmarks tracked from frame to frame (new ones are added at keyframes, strongest
     /// corners first, away from the tracked ones).
     pub max_tracks: usize,
@@ -146,6 +154,7 @@ impl Default for VoConfig {
             rotation_sigma_deg_per_m: 0.025,
             translation_sigma_m: 0.003,
             translation_sigma_per_m: 0.005,
+            blur_exposure_s: 0.02,
             max_tracks: 600,
             klt_window_radius: 5,
             klt_levels: 4,
@@ -371,6 +380,13 @@ impl VoConfig {
                 "translation_sigma_m",
                 &self.translation_sigma_m,
                 "must be in [0, 10)",
+            ));
+        }
+        if !(self.blur_exposure_s.is_finite() && (0.0..1.0).contains(&self.blur_exposure_s)) {
+            return Err(bad(
+                "blur_exposure_s",
+                &self.blur_exposure_s,
+                "must be in [0, 1)",
             ));
         }
         if !(self.scale_sigma.is_finite() && (0.0..1.0).contains(&self.scale_sigma)) {

@@ -223,6 +223,40 @@ pub fn with_shared_errors(
     Some(information)
 }
 
+/// Adds to an edge's information the rotation errors that motion blur leaves in its two
+/// keyframes (`pose` = `Tₐ⁻¹ T_b`, `omega_a|b` their angular velocities, rad/s, body
+/// frame). A blurred image shows the mean pose over the exposure `T`; when the rotation
+/// rate changes by `Δω` within it, that mean is `Δω · T / 8` away from the mid-exposure pose
+/// (the largest offset, a change at mid-exposure), along `Δω`. A turn may start or stop in
+/// any exposure, so `Δω` is taken as large as the keyframe's angular velocity: keyframe
+/// `k`'s rotation error has covariance `(T/8)² ωₖ ωₖᵀ`, independent between keyframes, and
+/// the relative pose's `δ = δ_b − Ad(Tₐ⁻¹T_b)⁻¹ δₐ` collects both.
+pub fn with_blur_errors(
+    information: &TangentMatrix,
+    pose: &SE3,
+    omega_a: &Vector3<f64>,
+    omega_b: &Vector3<f64>,
+    exposure_s: f64,
+) -> Option<TangentMatrix> {
+    let k = exposure_s / 8.0;
+    if k <= 0.0 || (omega_a.norm() == 0.0 && omega_b.norm() == 0.0) {
+        return Some(*information);
+    }
+    let keyframe = |omega: &Vector3<f64>| {
+        let mut c = TangentMatrix::zeros();
+        c.fixed_view_mut::<3, 3>(0, 0)
+            .copy_from(&(k * k * omega * omega.transpose()));
+        c
+    };
+    let m = pose.inverse().adjoint();
+    let covariance =
+        information.try_inverse()? + m * keyframe(omega_a) * m.transpose() + keyframe(omega_b);
+    let information = covariance.try_inverse()?;
+    let information = 0.5 * (information + information.transpose());
+    information.cholesky()?;
+    Some(information)
+}
+
 /// Gauss-Newton from `initial` on the correspondences `start` (RANSAC's inliers), then
 /// re-selecting inliers among all correspondences by `χ² < outlier_chi2` and refining
 /// again, until the set settles. `None` when fewer than `min_inliers` remain or the normal
@@ -316,6 +350,28 @@ pub fn refine(
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn blur_adds_rotation_uncertainty_along_the_turn_axis_only() {
+        let information = TangentMatrix::identity() * 1e6;
+        let still = Vector3::zeros();
+        let same = with_blur_errors(&information, &SE3::identity(), &still, &still, 0.02).unwrap();
+        assert_eq!(same, information);
+        // A 1 rad/s yaw (camera y) in both keyframes: (T/8)² ω² each, summed on the
+        // relative rotation's y axis; the other axes keep their information.
+        let yaw = Vector3::new(0.0, 1.0, 0.0);
+        let blurred = with_blur_errors(&information, &SE3::identity(), &yaw, &yaw, 0.02).unwrap();
+        let covariance = blurred.try_inverse().unwrap();
+        let expected = 1e-6 + 2.0 * (0.02f64 / 8.0).powi(2);
+        assert!(
+            (covariance[(1, 1)] - expected).abs() < 1e-12,
+            "{}",
+            covariance[(1, 1)]
+        );
+        assert!((covariance[(0, 0)] - 1e-6).abs() < 1e-12);
+        assert!((covariance[(2, 2)] - 1e-6).abs() < 1e-12);
+    }
+
     use super::*;
     use nalgebra::{Translation3, UnitQuaternion};
 

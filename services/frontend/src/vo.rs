@@ -15,7 +15,7 @@
 //! Losses start a new segment on the next good frame, linked to the previous one by a
 //! weak prior; every loss is counted by its reason.
 
-use nalgebra::Point3;
+use nalgebra::{Point3, Vector3};
 
 use doorslam_dataset::StereoCalibration;
 use doorslam_geometry::{LieGroup, Tangent, SE3};
@@ -29,7 +29,7 @@ use crate::error::FrontendError;
 use crate::keyframe::{Feature, Keyframe, OdometryEdge, SegmentLink};
 use crate::map::{LocalMap, WindowEdge};
 use crate::motion::{estimate_motion, prediction_error, MotionSettings};
-use crate::refine::{with_shared_errors, Correspondence, Noise};
+use crate::refine::{with_blur_errors, with_shared_errors, Correspondence, Noise};
 use crate::run::thread_cpu_s;
 use crate::tracking::{track_landmarks, TrackSettings, TrackedPoint};
 
@@ -258,6 +258,9 @@ struct Reference {
     pose: SE3,
     /// Landmarks tracked when it was made.
     landmarks: usize,
+    /// The camera's angular velocity (rad/s, body frame) when it was made: how far its
+    /// image's motion blur may have moved its pose ([`with_blur_errors`]).
+    angular_velocity: Vector3<f64>,
 }
 
 /// The state while tracking.
@@ -561,6 +564,7 @@ impl StereoVo {
             id,
             pose,
             landmarks: self.map.tracked(),
+            angular_velocity: Vector3::zeros(),
         };
         self.stages.keyframe_ms += lap.lap();
         Ok(Some((reference, keyframe, edge)))
@@ -600,7 +604,7 @@ impl StereoVo {
         };
         self.map.clear();
         self.stats.segments += 1;
-        let Some((reference, keyframe, _)) =
+        let Some((mut reference, keyframe, _)) =
             self.make_keyframe(frame, stamp_ns, pose, (left, right), false)?
         else {
             self.stats.segments -= 1;
@@ -616,6 +620,7 @@ impl StereoVo {
                 .config
                 .segment_prior_information(seconds(g.stamp_ns, stamp_ns)),
         });
+        reference.angular_velocity = velocity.fixed_rows::<3>(0).into_owned();
         tracing::info!(
             frame,
             segment = keyframe.segment,
@@ -788,14 +793,27 @@ impl StereoVo {
         let mut next_reference = reference;
         let mut pose = pose;
         if need_keyframe {
-            if let Some((new_reference, keyframe, adjusted)) =
+            if let Some((mut new_reference, keyframe, adjusted)) =
                 self.make_keyframe(frame, stamp_ns, pose, (left, right), true)?
             {
                 // The adjusted window's edge when it has one, else the frame's own
-                // refinement against the reference keyframe.
+                // refinement against the reference keyframe; then the blur of both.
                 let (relative, information) = adjusted
                     .and_then(|e| self.adjusted_information(&e).map(|i| (e.relative, i)))
                     .unwrap_or((refined.pose, refined.information));
+                new_reference.angular_velocity = if dt > 0.0 {
+                    step.log().fixed_rows::<3>(0) / dt
+                } else {
+                    reference.angular_velocity
+                };
+                let information = with_blur_errors(
+                    &information,
+                    &relative,
+                    &reference.angular_velocity,
+                    &new_reference.angular_velocity,
+                    self.config.blur_exposure_s,
+                )
+                .unwrap_or(information);
                 result.edge = Some(OdometryEdge {
                     from: reference.id,
                     to: keyframe.id,
