@@ -534,6 +534,12 @@ fn verify_chain(
         "verified_aliased": report.verified_aliased,
         "verification_requests": report.verification_requests,
         "bytes_per_true_closure": report.bytes_per_true_closure,
+        "verified_false_near": report.verified_false_near,
+        "verified_false_far": report.verified_false_far,
+        "accepted": report.accepted,
+        "accepted_false": report.accepted_false,
+        "accepted_aliased": report.accepted_aliased,
+        "accepted_recall": report.accepted_recall,
         "chain": {
             "config": chain,
             "stages": report.chain,
