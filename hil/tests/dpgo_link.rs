@@ -1,9 +1,7 @@
 //! `doorslam dpgo --link session`: the agents over the team link robots run (one
 //! `PeerSession` per pair, its delivery contract) on a radio that drops, reorders and
 //! duplicates, on a small generated team with interior poses. It must end where the
-//! runner's own delivery (`--link direct`) ends, every robot in one frame; with the
-//! contract switched off (what a session delivered reaches the agent in arrival order)
-//! it must not.
+//! runner's own delivery (`--link direct`) ends, every robot in one frame.
 
 use doorslam_backend::distributed::runner::{run_over, RunOptions, RunReport, Transport};
 use doorslam_backend::distributed::AgentOptions;
