@@ -350,6 +350,8 @@ pub fn refine(
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion};
 
     #[test]
     fn blur_adds_rotation_uncertainty_along_the_turn_axis_only() {
@@ -371,9 +373,6 @@ mod tests {
         assert!((covariance[(0, 0)] - 1e-6).abs() < 1e-12);
         assert!((covariance[(2, 2)] - 1e-6).abs() < 1e-12);
     }
-
-    use super::*;
-    use nalgebra::{Translation3, UnitQuaternion};
 
     #[test]
     fn scale_uncertainty_adds_its_covariance_along_the_translation() {
