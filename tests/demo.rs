@@ -100,6 +100,7 @@ fn demo(out: &Path, extra: &[&str]) -> Value {
         "realtime",
         "cpu",
         "scenario",
+        "security",
     ] {
         assert!(summary.get(field).is_some(), "summary.json lacks {field}");
     }
@@ -213,6 +214,17 @@ fn two_robots_build_one_map_and_a_killed_robot_rejoins_on_a_lossy_radio() {
     }
     assert!(sc["meetings_in_flight"].as_u64().unwrap() >= 1, "{sc}");
     ledgers_match_published(&out, &["a", "b"]);
+    // Secure by default: the robots met over mutual TLS with the access control, on the
+    // team's certificates the demo issued (the closures above went over it).
+    assert_eq!(s["security"]["tls"], true, "{}", s["security"]);
+    assert!(out.join("certs/ca.pem").is_file());
+    for r in ["a", "b"] {
+        let toml = std::fs::read_to_string(out.join(r).join("robot.toml")).unwrap();
+        assert!(
+            toml.contains("[team.tls]") && toml.contains("listen = [\"tls/"),
+            "robot {r}: {toml}"
+        );
+    }
     // The report folder is what `doorslam bw --json` reads.
     let bw = Command::new(env!("CARGO_BIN_EXE_doorslam"))
         .args(["bw", "--json"])

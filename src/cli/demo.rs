@@ -66,6 +66,11 @@ pub struct DemoArgs {
     /// Most seconds to wait at base, after the flight, for the team estimate to settle.
     #[arg(long, default_value_t = 30.0)]
     pub settle_s: f64,
+    /// Plain TCP between the robots, open to any host on the network. Without it (the
+    /// default) the demo issues a team CA and robot certificates into `<out>/certs` and
+    /// every robot uses mutual TLS and the access control.
+    #[arg(long)]
+    pub insecure: bool,
     /// Print `summary.json` on stdout at the end.
     #[arg(long)]
     pub json: bool,
@@ -142,6 +147,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
     config.seed = args.seed;
     config.settle_s = args.settle_s;
     config.realistic_camera = args.camera == CameraArg::Realistic;
+    config.insecure = args.insecure;
 
     let tty = std::io::stderr().is_terminal();
     let multi = MultiProgress::new();

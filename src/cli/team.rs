@@ -1,4 +1,4 @@
-//! `doorslam team certs --out DIR --robots a,b,c [--routers r1] [--team NAME] [--days N]`:
+//! `doorslam team certs --out DIR --robots a,b,c [--routers r1] [--team NAME] [--days N | --clockless]`:
 //! the team CA and one certificate per robot and router for the TLS team link (logic in
 //! `doorslam_team::certs`).
 
@@ -35,8 +35,13 @@ pub struct CertsArgs {
     #[arg(long, default_value = "doorslam")]
     pub team: String,
     /// Validity of the robots' and routers' certificates, in days.
-    #[arg(long, default_value_t = 365)]
+    #[arg(long, default_value_t = 365, conflicts_with = "clockless")]
     pub days: u32,
+    /// Certificates (and a CA) valid from 1970 to 9999, for robots without a real-time
+    /// clock or NTP: authentication stays (CA signature, mutual TLS, roster), expiry by date
+    /// is replaced by the roster and a new team CA.
+    #[arg(long)]
+    pub clockless: bool,
 }
 
 pub fn run(args: TeamArgs) -> Result<()> {
@@ -51,6 +56,7 @@ fn certs(args: CertsArgs) -> Result<()> {
         robots: args.robots,
         routers: args.routers,
         days: args.days,
+        clockless: args.clockless,
     };
     let issued = doorslam_team::certs::generate(&args.out, &request)
         .with_context(|| format!("doorslam team certs --out {}", args.out.display()))?;

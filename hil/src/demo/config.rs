@@ -90,6 +90,9 @@ pub struct DemoConfig {
     pub base_port: u16,
     /// Extra lines appended to every robot's `robot.toml` (e.g. `[rendezvous]` settings).
     pub robot_toml_extra: String,
+    /// `--insecure`: plain TCP between robots, open to any host on the network, instead of
+    /// the default mutual TLS and access control.
+    pub insecure: bool,
 }
 
 impl DemoConfig {
@@ -114,6 +117,7 @@ impl DemoConfig {
             realistic_camera: true,
             base_port: 17_447,
             robot_toml_extra: String::new(),
+            insecure: false,
         }
     }
 
@@ -467,6 +471,51 @@ fn ground_truth(dir: &Path) -> Result<Trajectory, DemoError> {
     Trajectory::new(stamps, truth).map_err(|e| fail(e.to_string()))
 }
 
+/// The team's name in every robot's config: one per demo process, so two demos on one
+/// machine never join each other.
+pub fn team_name() -> String {
+    format!("demo{}", std::process::id())
+}
+
+/// The team's certificates of a secure demo.
+#[derive(Debug, Clone)]
+pub struct DemoTls {
+    /// `<out>/certs`: the layout of `doorslam team certs` (ca.pem, robots/<id>/...).
+    pub dir: PathBuf,
+    /// Every robot id, the roster of `[team.tls] robots`.
+    pub roster: Vec<String>,
+}
+
+/// Writes the team CA and one certificate per robot into `<out>/certs`, as `doorslam team
+/// certs --clockless` does: the simulated drones, like real ones without a real-time
+/// clock, authenticate whatever their clocks say (`doorslam_team::certs`, "Robots without a
+/// synchronized clock"). The CA's key stays in the folder: a demo's team lives as long as its
+/// run folder.
+pub fn team_certs(out: &Path, robots: usize) -> Result<DemoTls, DemoError> {
+    let dir = out.join("certs");
+    let roster: Vec<String> = (0..robots).map(|r| robot_name(r).to_string()).collect();
+    doorslam_team::certs::generate(
+        &dir,
+        &doorslam_team::certs::CertsRequest {
+            team: team_name(),
+            robots: roster.clone(),
+            routers: vec![],
+            days: 1,
+            clockless: true,
+        },
+    )
+    .map_err(|e| DemoError::Io {
+        path: dir.clone(),
+        reason: format!("team certificates: {e}"),
+    })?;
+    Ok(DemoTls { dir, roster })
+}
+
+/// The endpoint robot `r` listens on: `tcp/` or, with the team's certificates, `tls/`.
+pub fn endpoint(address: &str, port: u16, tls: bool) -> String {
+    format!("{}/{address}:{port}", if tls { "tls" } else { "tcp" })
+}
+
 /// The `robot.toml` of robot `r`.
 pub fn robot_toml(
     config: &DemoConfig,
@@ -475,6 +524,7 @@ pub fn robot_toml(
     addresses: &[String],
     start_unix_ms: u64,
     netns: bool,
+    tls: Option<&DemoTls>,
 ) -> String {
     let out = config.out.display();
     let (path, split) = &world.sources[r];
@@ -516,10 +566,10 @@ distributed = true
 write_every_s = 0.5
 
 [team]
-name = "demo{pid}"
+name = "{team}"
 listen = ["{listen}"]
 "#,
-        pid = std::process::id(),
+        team = team_name(),
         listen = addresses[r],
     );
     if netns {
@@ -544,7 +594,28 @@ listen = ["{listen}"]
 run_dir = "{out}"
 retransmit_ms = 500
 write_every_ms = 500
-
+"#
+    );
+    if let Some(tls) = tls {
+        let name = robot_name(r);
+        let d = tls.dir.display();
+        let roster: Vec<String> = tls.roster.iter().map(|x| format!("{x:?}")).collect();
+        let _ = write!(
+            t,
+            r#"
+# Mutual TLS + access control (`doorslam team certs --clockless`, in {d}).
+[team.tls]
+ca = "{d}/ca.pem"
+cert = "{d}/robots/{name}/cert.pem"
+key = "{d}/robots/{name}/key.pem"
+robots = [{roster}]
+"#,
+            roster = roster.join(", ")
+        );
+    }
+    let _ = write!(
+        t,
+        r#"
 [up]
 services = ["backend", "frontend", "place-recognition", "team", "camera"]
 "#

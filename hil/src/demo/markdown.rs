@@ -55,6 +55,20 @@ pub fn report(s: &Summary, bw_table: &str) -> String {
         s.durations.settle_s,
         s.durations.report_s,
     );
+    let _ = writeln!(
+        t,
+        "Team link: {}{}.\n",
+        s.security.mode,
+        if s.security.tls {
+            format!(
+                " (team CA and robot certificates in `{}`, clockless validity; robots {} each admitted only as itself)",
+                s.security.certificates.as_deref().unwrap_or("certs/"),
+                s.security.roster.join(", ")
+            )
+        } else {
+            String::new()
+        }
+    );
     let _ = writeln!(t, "**{}.**\n", s.realtime.verdict);
     if s.cpu.machine_shared == Some(true) {
         let _ = writeln!(

@@ -122,6 +122,42 @@ pub struct RunLog {
     pub drop: Option<(f64, u64, u64)>,
     /// Times each robot's processes were started.
     pub starts: Vec<u32>,
+    /// How the robots' link was secured.
+    pub security: SecuritySummary,
+}
+
+/// How the team link of the run was secured (`summary.json` `security`).
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct SecuritySummary {
+    /// `mutual TLS + access control`, or `none (--insecure)`.
+    pub mode: String,
+    pub tls: bool,
+    /// The team CA and the robots' certificates, relative to the run folder.
+    pub certificates: Option<String>,
+    /// Robot ids the access control lets in, each only as itself.
+    pub roster: Vec<String>,
+    /// Certificate validity policy: `clockless` (1970 to 9999, for robots without a
+    /// synchronized clock), or none without TLS.
+    pub validity: Option<String>,
+}
+
+impl SecuritySummary {
+    fn insecure() -> Self {
+        Self {
+            mode: "none (--insecure): plain TCP, any host on the network may publish".into(),
+            ..Self::default()
+        }
+    }
+
+    fn secure(tls: &config::DemoTls) -> Self {
+        Self {
+            mode: "mutual TLS + access control".into(),
+            tls: true,
+            certificates: Some("certs/".into()),
+            roster: tls.roster.clone(),
+            validity: Some("clockless".into()),
+        }
+    }
 }
 
 /// CPU time, measured per process ([`cpu::CpuMeter`]) and for the machine.
@@ -234,10 +270,19 @@ pub fn run(
         progress(&snap);
         None
     };
+    // Secure by default: the team's certificates, mutual TLS and the access control.
+    let tls = if config.insecure {
+        log.security = SecuritySummary::insecure();
+        None
+    } else {
+        let tls = config::team_certs(out, n)?;
+        log.security = SecuritySummary::secure(&tls);
+        Some(tls)
+    };
     let addresses: Vec<String> = (0..n)
         .map(|i| match &net {
-            Some(net) => format!("tcp/{}:7447", net.addr(i)),
-            None => format!("tcp/127.0.0.1:{}", config.base_port + i as u16),
+            Some(net) => config::endpoint(net.addr(i), 7447, tls.is_some()),
+            None => config::endpoint("127.0.0.1", config.base_port + i as u16, tls.is_some()),
         })
         .collect();
 
@@ -245,7 +290,15 @@ pub fn run(
     let start_unix_ms = config::unix_ms() + (config.startup_s * 1e3) as u64;
     let mut robots = Vec::with_capacity(n);
     for r in 0..n {
-        let text = config::robot_toml(config, &world, r, &addresses, start_unix_ms, net.is_some());
+        let text = config::robot_toml(
+            config,
+            &world,
+            r,
+            &addresses,
+            start_unix_ms,
+            net.is_some(),
+            tls.as_ref(),
+        );
         robots.push(robot::Robot::create(out, r, &text)?);
     }
     // Range at the start: every pair is cut before anyone listens (the events put them in

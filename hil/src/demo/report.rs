@@ -195,6 +195,8 @@ pub struct Summary {
     pub drop: Option<DropSummary>,
     /// `--kill`: the robot killed, when, and after how long it restarted; or null.
     pub kill: Option<KillSummary>,
+    /// How the team link was secured (mutual TLS + access control unless `--insecure`).
+    pub security: super::SecuritySummary,
     /// Whether every robot kept up with its camera on this machine.
     pub realtime: super::realtime::Realtime,
     /// Where the CPU went (robots, per process, demo, the machine).
@@ -677,6 +679,7 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
             at_s: k.at_s,
             restart_after_s: config.restart_after_s,
         }),
+        security: log.security.clone(),
         bandwidth,
         timeline: log.timeline.clone(),
         durations: Durations {

@@ -16,6 +16,21 @@
 //! Keys are ECDSA P-256, written with mode 0600. An existing `ca.pem` + `ca.key` in the
 //! folder is reused (robots added later join the same team); an existing robot
 //! certificate is never overwritten.
+//!
+//! ## Robots without a synchronized clock (`--clockless`)
+//!
+//! TLS checks a certificate's validity window against the wall clock, on both ends of
+//! every link. A drone computer without a real-time clock or NTP boots at 1970 (or at its
+//! image's build time) and would refuse every teammate, and be refused. Clockless
+//! certificates ([`Validity::clockless`]) are valid from the Unix epoch to
+//! 9999-12-31 23:59:59 UTC, the date RFC 5280 (§4.1.2.5) sets aside for certificates with
+//! no well-defined expiration (as IEEE 802.1AR device identities use it). Authentication
+//! is untouched by a wrong clock: a peer still has to hold a key whose certificate the team
+//! CA signed, prove it in the mutual handshake, and be in the roster of the access control.
+//! What is given up is expiry by date; in its place a team retires certificates by
+//! leaving robots out of the roster (`[team.tls] robots`) or by issuing a new team CA
+//! (a new `--out`), which every certificate of the old one cannot pass. A clockless team
+//! needs a clockless CA: a robot with a wrong clock also checks the CA's own window.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -75,7 +90,19 @@ impl Validity {
             not_after: now + DAY * days,
         }
     }
+
+    /// From the Unix epoch to 9999-12-31 23:59:59 UTC: valid whatever a robot's clock says
+    /// (module docs, "Robots without a synchronized clock").
+    pub fn clockless() -> Self {
+        Self {
+            not_before: SystemTime::UNIX_EPOCH,
+            not_after: SystemTime::UNIX_EPOCH + Duration::from_secs(CLOCKLESS_NOT_AFTER_UNIX_S),
+        }
+    }
 }
+
+/// 9999-12-31 23:59:59 UTC, RFC 5280's "no well-defined expiration date".
+pub const CLOCKLESS_NOT_AFTER_UNIX_S: u64 = 253_402_300_799;
 
 fn offset(t: SystemTime) -> time::OffsetDateTime {
     time::OffsetDateTime::from(t)
@@ -182,6 +209,13 @@ impl TeamCa {
         &self.team
     }
 
+    /// Whether the CA's own window is [`Validity::clockless`] (so robots with any clock
+    /// accept it).
+    pub fn is_clockless(&self) -> bool {
+        crate::security::parse_certificate_pem(Path::new("ca.pem"), self.cert_pem.as_bytes())
+            .is_ok_and(|c| c.not_before <= 0 && c.not_after >= CLOCKLESS_NOT_AFTER_UNIX_S as i64)
+    }
+
     pub fn cert_pem(&self) -> &str {
         &self.cert_pem
     }
@@ -242,8 +276,11 @@ pub struct CertsRequest {
     pub team: String,
     pub robots: Vec<String>,
     pub routers: Vec<String>,
-    /// Validity of the robots' and routers' certificates.
+    /// Validity of the robots' and routers' certificates (ignored when `clockless`).
     pub days: u32,
+    /// Clockless certificates and CA ([`Validity::clockless`]), for robots without a
+    /// synchronized clock.
+    pub clockless: bool,
 }
 
 /// What was written.
@@ -262,7 +299,7 @@ pub fn generate(out: &Path, request: &CertsRequest) -> Result<Issued, CertError>
             "nothing to issue: give --robots and/or --routers".into(),
         ));
     }
-    if request.days == 0 {
+    if request.days == 0 && !request.clockless {
         return Err(CertError::Request("--days must be at least 1".into()));
     }
     for r in &request.robots {
@@ -290,19 +327,33 @@ pub fn generate(out: &Path, request: &CertsRequest) -> Result<Issued, CertError>
                     ),
                 });
             }
+            if request.clockless && !ca.is_clockless() {
+                return Err(CertError::Ca {
+                    path: ca_path,
+                    reason: "is not a clockless CA: a robot whose clock is wrong would refuse it; \
+                             issue a clockless team into another --out"
+                        .into(),
+                });
+            }
             (ca, false)
         }
         None => {
-            let ca = TeamCa::create(
-                &team,
-                Validity::days_from_now(request.days.max(CA_MIN_DAYS)),
-            )?;
+            let validity = if request.clockless {
+                Validity::clockless()
+            } else {
+                Validity::days_from_now(request.days.max(CA_MIN_DAYS))
+            };
+            let ca = TeamCa::create(&team, validity)?;
             write_new(&ca_path, ca.cert_pem(), false)?;
             write_new(&out.join("ca.key"), &ca.key_pem(), true)?;
             (ca, true)
         }
     };
-    let validity = Validity::days_from_now(request.days);
+    let validity = if request.clockless {
+        Validity::clockless()
+    } else {
+        Validity::days_from_now(request.days)
+    };
     let mut certificates = Vec::new();
     let wanted = request
         .robots
@@ -391,6 +442,7 @@ mod tests {
             robots: robots.iter().map(|s| s.to_string()).collect(),
             routers: vec![],
             days: 30,
+            clockless: false,
         }
     }
 

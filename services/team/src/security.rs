@@ -102,9 +102,9 @@ pub enum SecurityError {
     NotCa { path: PathBuf },
     #[error("{path}: not signed by the team CA {ca}")]
     NotSignedByCa { path: PathBuf, ca: PathBuf },
-    #[error("{path}: expired on {not_after} (renew it with doorslam team certs)")]
+    #[error("{path}: expired on {not_after} (renew it with doorslam team certs; is this clock right? robots without a synchronized clock need doorslam team certs --clockless)")]
     Expired { path: PathBuf, not_after: String },
-    #[error("{path}: not valid before {not_before} (is this clock right?)")]
+    #[error("{path}: not valid before {not_before} (is this clock right? robots without a synchronized clock need doorslam team certs --clockless)")]
     NotYetValid { path: PathBuf, not_before: String },
     #[error("{path}: common name {found:?}, this process is {expected:?} (a robot's certificate names its robot id)")]
     CommonName {
@@ -235,8 +235,19 @@ impl Security {
     /// missing, not PEM, not signed by the CA, expired, another common name, a key that is
     /// not the certificate's) and the roster.
     pub fn check(tls: &TlsSection, team: &str, holder: &Holder) -> Result<Self, SecurityError> {
+        Self::check_at(tls, team, holder, unix_now())
+    }
+
+    /// [`Security::check`] with the wall clock reading `now_unix_s` (a robot whose clock is
+    /// off: clockless certificates pass whatever it reads, dated ones say which date failed).
+    pub fn check_at(
+        tls: &TlsSection,
+        team: &str,
+        holder: &Holder,
+        now_unix_s: i64,
+    ) -> Result<Self, SecurityError> {
         let roster = tls.roster().map_err(SecurityError::Roster)?;
-        let now = unix_now();
+        let now = now_unix_s;
         let ca = parse_certificate_pem(&tls.ca, &read(&tls.ca)?)?;
         if !ca.is_ca {
             return Err(SecurityError::NotCa {
@@ -280,7 +291,7 @@ impl Security {
             }
         }
         let days_left = (cert.not_after - now) / 86_400;
-        if days_left < 14 {
+        if days_left < 14 && cert.not_after < crate::certs::CLOCKLESS_NOT_AFTER_UNIX_S as i64 {
             tracing::warn!(
                 cert = %tls.cert.display(),
                 days_left,
@@ -447,6 +458,10 @@ mod tests {
     }
 
     fn team(robots: &[&str]) -> Files {
+        team_with(robots, false)
+    }
+
+    fn team_with(robots: &[&str], clockless: bool) -> Files {
         let dir = tempfile::tempdir().unwrap();
         let root = dir.path().to_path_buf();
         generate(
@@ -456,6 +471,7 @@ mod tests {
                 robots: robots.iter().map(|s| s.to_string()).collect(),
                 routers: vec!["r1".into()],
                 days: 30,
+                clockless,
             },
         )
         .unwrap();
@@ -494,6 +510,75 @@ mod tests {
         Security::check(&router, "t1", &Holder::Router).unwrap();
         let err = Security::check(&router, "t1", &robot("a")).unwrap_err();
         assert!(matches!(err, SecurityError::CommonName { .. }), "{err}");
+    }
+
+    const YEAR_S: i64 = 365 * 86_400;
+
+    #[test]
+    fn a_robot_whose_clock_is_years_off_passes_with_clockless_certificates_only() {
+        let now = SystemTime::now()
+            .duration_since(SystemTime::UNIX_EPOCH)
+            .unwrap()
+            .as_secs() as i64;
+        // A drone without RTC at boot (1970 plus a day), one years behind, one years ahead.
+        let clocks = [86_400, now - 5 * YEAR_S, now + 30 * YEAR_S];
+        let dated = team(&["a", "b"]);
+        let clockless = team_with(&["a", "b"], true);
+        for clock in clocks {
+            let err =
+                Security::check_at(&section(&dated, "a"), "t1", &robot("a"), clock).unwrap_err();
+            assert!(
+                matches!(
+                    err,
+                    SecurityError::NotYetValid { .. } | SecurityError::Expired { .. }
+                ),
+                "clock {clock}: {err}"
+            );
+            assert!(err.to_string().contains("--clockless"), "{err}");
+            let s = Security::check_at(&section(&clockless, "a"), "t1", &robot("a"), clock)
+                .unwrap_or_else(|e| panic!("clock {clock}: {e}"));
+            assert_eq!(
+                s.expires_unix_s,
+                crate::certs::CLOCKLESS_NOT_AFTER_UNIX_S as i64
+            );
+        }
+        // Authentication is intact with the clock off: another team's certificate, or a
+        // certificate for another robot, is still refused.
+        let other = team_with(&["a"], true);
+        let foreign = TlsSection {
+            cert: other.root.join("robots/a/cert.pem"),
+            key: other.root.join("robots/a/key.pem"),
+            ..section(&clockless, "a")
+        };
+        let err = Security::check_at(&foreign, "t1", &robot("a"), 86_400).unwrap_err();
+        assert!(matches!(err, SecurityError::NotSignedByCa { .. }), "{err}");
+        let err =
+            Security::check_at(&section(&clockless, "b"), "t1", &robot("a"), 86_400).unwrap_err();
+        assert!(matches!(err, SecurityError::CommonName { .. }), "{err}");
+    }
+
+    #[test]
+    fn a_clockless_team_refuses_to_reuse_a_dated_ca() {
+        let dated = team(&["a"]);
+        let err = generate(
+            &dated.root,
+            &CertsRequest {
+                team: "t1".into(),
+                robots: vec!["c".into()],
+                routers: vec![],
+                days: 30,
+                clockless: true,
+            },
+        )
+        .unwrap_err();
+        assert!(err.to_string().contains("not a clockless CA"), "{err}");
+        // The other way round is fine: a dated robot certificate under a clockless CA.
+        let clockless = team_with(&["a"], true);
+        assert!(TeamCa::load(&clockless.root)
+            .unwrap()
+            .unwrap()
+            .is_clockless());
+        assert!(!TeamCa::load(&dated.root).unwrap().unwrap().is_clockless());
     }
 
     #[test]

@@ -63,6 +63,7 @@ fn team_security(dir: &Path, team: &str) -> (Security, Security) {
             robots: vec!["a".into(), "b".into()],
             routers: vec![],
             days: 2,
+            clockless: false,
         },
     )
     .unwrap();

@@ -44,6 +44,10 @@ fn tls(dir: &Path, robot: &str, roster: &[&str]) -> TlsSection {
 }
 
 fn make_certs(dir: &Path, team: &str, robots: &[&str]) {
+    make_certs_with(dir, team, robots, false);
+}
+
+fn make_certs_with(dir: &Path, team: &str, robots: &[&str], clockless: bool) {
     generate(
         dir,
         &CertsRequest {
@@ -51,6 +55,7 @@ fn make_certs(dir: &Path, team: &str, robots: &[&str]) {
             robots: robots.iter().map(|s| s.to_string()).collect(),
             routers: vec![],
             days: 2,
+            clockless,
         },
     )
     .unwrap();
@@ -480,4 +485,233 @@ fn a_team_robot_cannot_publish_as_another_and_an_unlisted_certificate_can_do_not
     );
     la.close().unwrap();
     lb.close().unwrap();
+}
+
+// ---------------------------------------------------------------------------------------
+// A robot whose wall clock is years off (a drone computer without RTC or NTP boots in
+// 1970): it runs as a child process under libfaketime (LD_PRELOAD; the clock of the
+// whole process, so also the one TLS checks certificates against), the rest of the team
+// with the right clock. With clockless team certificates it authenticates its team and
+// still refuses an outsider; with dated ones (the control) TLS refuses the link, which
+// shows that the fake clock is in effect.
+
+const FAKETIME_LIBS: [&str; 2] = [
+    "/usr/lib/x86_64-linux-gnu/faketime/libfaketimeMT.so.1",
+    "/usr/lib/aarch64-linux-gnu/faketime/libfaketimeMT.so.1",
+];
+/// The child's clock: a year and a half after the Unix epoch.
+const CHILD_CLOCK: &str = "@1971-06-01 00:00:00";
+const CHILD_ENV: &str = "DOORSLAM_TEST_CLOCK_CHILD";
+
+/// Unix seconds of this process's wall clock.
+fn wall_clock_s() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs()
+}
+
+/// The off-clock robot b. Run only as the child of
+/// `a_robot_whose_clock_is_years_off_authenticates_its_team_and_refuses_an_outsider`
+/// (which passes it `CHILD_ENV`); ignored in a plain run, where it has nothing to do.
+#[test]
+#[ignore = "the off-clock child of the clock test; started by that test"]
+fn clock_off_child() {
+    let Ok(arg) = std::env::var(CHILD_ENV) else {
+        return;
+    };
+    let parts: Vec<&str> = arg.split('|').collect();
+    let [dir, team, endpoint, how, seconds] = parts[..] else {
+        panic!("{CHILD_ENV}={arg}: dir|team|endpoint|checked or unchecked|seconds");
+    };
+    let d = Path::new(dir);
+    println!("CHILD clock {}", wall_clock_s());
+    let section = tls(d, "b", &["a", "b"]);
+    let security = if how == "checked" {
+        // The robot's own start-up checks, at its own (wrong) clock.
+        checked(&section, team, "b")
+    } else {
+        // Dated certificates fail that check at this clock: build the settings by hand
+        // so that the link itself (TLS) is what is tried.
+        Security {
+            team: team.into(),
+            ca: section.ca.clone(),
+            cert: section.cert.clone(),
+            key: section.key.clone(),
+            roster: vec![id("a"), id("b")],
+            expires_unix_s: i64::MAX,
+        }
+    };
+    let (mut b, mut lb) = robot(team, "b", 1, vec![endpoint.into()], vec![], security);
+    let start = Instant::now();
+    let limit = Duration::from_secs(seconds.parse().unwrap());
+    let mut done: Option<Instant> = None;
+    // Up to `seconds`, or 3 s after it has every descriptor of a (time for a to get b's
+    // acknowledgements and matches).
+    while start.elapsed() < limit && done.is_none_or(|t| t.elapsed() < Duration::from_secs(3)) {
+        step(&mut [(&mut b, &mut lb)], start);
+        let delivered = b
+            .session(&id("a"))
+            .map_or(0, |s| s.delivered_descriptors().len() as u64);
+        if delivered == KEYFRAMES && done.is_none() {
+            done = Some(Instant::now());
+            println!("CHILD got every descriptor of a");
+        }
+    }
+    lb.close().unwrap();
+}
+
+struct Child(std::process::Child);
+
+impl Drop for Child {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Starts [`clock_off_child`] with its clock at [`CHILD_CLOCK`]; `None` (with the reason
+/// printed) where libfaketime is not installed.
+fn start_off_clock_child(arg: &str) -> Option<Child> {
+    let Some(lib) = FAKETIME_LIBS.iter().find(|p| Path::new(p).exists()) else {
+        eprintln!("libfaketime not installed (deploy/setup installs it): clock test not run");
+        return None;
+    };
+    let child = std::process::Command::new(std::env::current_exe().unwrap())
+        .args(["--ignored", "--exact", "clock_off_child", "--nocapture"])
+        .env(CHILD_ENV, arg)
+        .env("LD_PRELOAD", lib)
+        .env("FAKETIME", CHILD_CLOCK)
+        // Only the wall clock is off, as on a drone without RTC: timers keep running.
+        .env("FAKETIME_DONT_FAKE_MONOTONIC", "1")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::inherit())
+        .spawn()
+        .unwrap();
+    Some(Child(child))
+}
+
+/// The child's output, once it has ended.
+fn child_output(mut child: Child) -> String {
+    use std::io::Read;
+    let status = child.0.wait().unwrap();
+    let mut out = String::new();
+    child
+        .0
+        .stdout
+        .take()
+        .unwrap()
+        .read_to_string(&mut out)
+        .unwrap();
+    assert!(status.success(), "off-clock child failed: {out}");
+    out
+}
+
+/// Whether b acknowledged every descriptor of a, and a got b's matches back (so each
+/// one's certificate passed the other's checks: the link is mutual).
+fn a_got_b(a: &Node) -> bool {
+    a.session(&id("b")).is_some_and(|s| {
+        s.stats().descriptors_acknowledged == KEYFRAMES && s.stats().matches_received > 0
+    })
+}
+
+#[test]
+fn a_robot_whose_clock_is_years_off_authenticates_its_team_and_refuses_an_outsider() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let roster = ["a", "b"];
+
+    // 1. Clockless team certificates: the off-clock b and the right-clock a meet.
+    let team = format!("ck{}", std::process::id());
+    make_certs_with(d, &team, &roster, true);
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let child_s = 25;
+    let arg = format!("{}|{team}|{endpoint}|checked|{child_s}", d.display());
+    let Some(mut child) = start_off_clock_child(&arg) else {
+        return;
+    };
+    let (mut a, mut la) = robot(
+        &team,
+        "a",
+        0,
+        vec![],
+        vec![endpoint.clone()],
+        checked(&tls(d, "a", &roster), &team, "a"),
+    );
+    // An outsider: its own CA (same team name), a certificate for "a".
+    let rogue_dir = d.join("rogue");
+    make_certs_with(&rogue_dir, &team, &["a"], true);
+    let rogue = Injector::new(
+        rogue_tls(&team, &tls(&rogue_dir, "a", &roster), &endpoint),
+        &team,
+        &["a"],
+        vec![(format!("doorslam/{team}/b/hello/a"), forged_hello("a"))],
+    );
+    let start = Instant::now();
+    while !a_got_b(&a) {
+        assert!(
+            start.elapsed() < Duration::from_secs(child_s - 5),
+            "the off-clock robot and its team did not meet: a {:?}",
+            a.session(&id("b")).map(|s| s.stats().clone())
+        );
+        rogue.inject();
+        step(&mut [(&mut a, &mut la)], start);
+    }
+    // Keep a up until the child has what it needs (it ends on its own).
+    while start.elapsed() < Duration::from_secs(child_s + 2) {
+        rogue.inject();
+        step(&mut [(&mut a, &mut la)], start);
+        if let Ok(Some(_)) = child.0.try_wait() {
+            break;
+        }
+    }
+    assert_eq!(
+        rogue.links(),
+        0,
+        "the outsider got a link to the off-clock robot"
+    );
+    let out = child_output(child);
+    let clock: u64 = out
+        .lines()
+        .find_map(|l| l.strip_prefix("CHILD clock "))
+        .and_then(|s| s.trim().parse().ok())
+        .unwrap_or_else(|| panic!("child printed no clock: {out}"));
+    assert!(
+        clock < 2 * 365 * 86_400,
+        "the child's clock was not set off ({clock} s after 1970): {out}"
+    );
+    assert!(out.contains("CHILD got every descriptor of a"), "{out}");
+    la.close().unwrap();
+
+    // 2. Control: dated certificates (valid from an hour ago), the same off clock: TLS
+    //    itself refuses the link.
+    let dated = d.join("dated");
+    let team = format!("cd{}", std::process::id());
+    make_certs_with(&dated, &team, &roster, false);
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let control_s = 8;
+    let arg = format!(
+        "{}|{team}|{endpoint}|unchecked|{control_s}",
+        dated.display()
+    );
+    let child = start_off_clock_child(&arg).unwrap();
+    let (mut a, mut la) = robot(
+        &team,
+        "a",
+        0,
+        vec![],
+        vec![endpoint],
+        checked(&tls(&dated, "a", &roster), &team, "a"),
+    );
+    let start = Instant::now();
+    while start.elapsed() < Duration::from_secs(control_s - 1) {
+        step(&mut [(&mut a, &mut la)], start);
+    }
+    assert!(
+        !a_got_b(&a),
+        "dated certificates passed at a clock years off: the control is broken"
+    );
+    let out = child_output(child);
+    assert!(!out.contains("CHILD got every descriptor of a"), "{out}");
+    la.close().unwrap();
 }
