@@ -1,0 +1,422 @@
+//! A hostile teammate: robot z holds a place in the team (its certificate is in the roster,
+//! so the access control lets it publish as itself) and turns against it. After an honest
+//! first meeting it floods robots a and b with a million messages built from its own
+//! real traffic: garbage, truncated and bit-flipped messages, replays, stale epochs,
+//! sequence jumps, messages claiming another sender or another kind, loop closures with
+//! NaN and absurd poses, and descriptor floods. Meanwhile a and b have their own meeting.
+//!
+//! What must hold (issue #33): no panic; a and b complete their exchange; every message
+//! of z is accounted for in the ledgers (delivered or dropped by reason, never silently
+//! lost); nothing non-finite reaches a back-end; the process's memory stays flat while a
+//! million messages go by.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use doorslam_ipc::wire::{Body, Header, Kind, Message, RobotId};
+use doorslam_team::emulate::{Bus, EmulatedLink};
+use doorslam_team::ledger::{Direction, Ledger, LedgerFile, LedgerHandle};
+use doorslam_team::protocol::{Identity, ProtocolConfig};
+use doorslam_team::standin::{BackendLog, EchoBackend, SimPlaces, SimWorld, TruthVerifier};
+use doorslam_team::{Node, Pieces};
+
+const HOSTILE_MESSAGES: u64 = 1_000_000;
+/// Messages z injects between two steps of the honest robots.
+const BURST: u64 = 2_000;
+const KEYFRAMES: u64 = 40;
+
+struct Robot {
+    id: RobotId,
+    node: Node,
+    link: EmulatedLink,
+    created: Arc<AtomicU64>,
+    backend: Arc<Mutex<BackendLog>>,
+}
+
+fn config() -> ProtocolConfig {
+    ProtocolConfig {
+        retransmit_ms: 200,
+        descriptor_batch: 16,
+        batch_linger_ms: 100,
+        window: 4,
+        receive_window: 64,
+        features_cache: 512,
+    }
+}
+
+fn robot(bus: &Bus, id: &str, index: u8) -> Robot {
+    let world = SimWorld::default();
+    let id = RobotId::new(id).unwrap();
+    let place = SimPlaces::new(world, index, 20);
+    let created = place.created();
+    let backend = EchoBackend::new(index);
+    let log = backend.log.clone();
+    let node = Node::new(
+        Identity {
+            id: id.clone(),
+            robot: index,
+            epoch: 1,
+        },
+        config(),
+        LedgerHandle::new(Ledger::new(id.as_str(), "test", 1, 752 * 480)),
+        Pieces {
+            place: Box::new(place),
+            verifier: Box::new(TruthVerifier::from_world(world)),
+            backend: Box::new(backend),
+        },
+    );
+    Robot {
+        link: bus.link(&id),
+        id,
+        node,
+        created,
+        backend: log,
+    }
+}
+
+fn run(robots: &mut [&mut Robot], now: &mut u64, steps: usize) {
+    for _ in 0..steps {
+        for r in robots.iter_mut() {
+            r.node.step(&mut r.link, *now, Duration::ZERO);
+        }
+        *now += 10;
+    }
+}
+
+/// `x` and `y` have met: nothing of either is unacknowledged by the other, and one of
+/// them has `n` of the other's descriptors (the protocol gives one of the pair the
+/// descriptor sender's role, α).
+fn met(x: &Robot, y: &Robot, n: u64) -> bool {
+    let settled = |p: &Robot, q: &Robot| {
+        p.node
+            .session(&q.id)
+            .is_some_and(|s| Kind::ALL.iter().all(|&k| s.unacknowledged(k).is_empty()))
+    };
+    let has = |p: &Robot, q: &Robot| {
+        p.node
+            .session(&q.id)
+            .is_some_and(|s| s.delivered_descriptors().len() as u64 == n)
+    };
+    settled(x, y) && settled(y, x) && (has(x, y) || has(y, x))
+}
+
+/// Messages from `peer` the ledger saw: received (any kind) and dropped (any reason).
+fn accounted(ledger: &LedgerFile, peer: &str) -> (u64, u64) {
+    let received = ledger
+        .traffic
+        .iter()
+        .filter(|t| t.peer == peer && t.direction == Direction::Received)
+        .map(|t| t.counts.messages)
+        .sum();
+    let dropped = ledger
+        .dropped
+        .iter()
+        .filter(|d| d.peer == peer)
+        .map(|d| d.messages)
+        .sum();
+    (received, dropped)
+}
+
+/// Resident memory of this process, kB.
+fn rss_kb() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("VmRSS:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        })
+        .unwrap_or(0)
+}
+
+/// xorshift64*: the attack is the same on every run.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
+    }
+    fn below(&mut self, n: u64) -> u64 {
+        self.next() % n.max(1)
+    }
+}
+
+/// `m` encoded with its header (or kind) changed; `None` when the encoder refuses it.
+fn reencoded(m: &Message, header: Header) -> Option<Vec<u8>> {
+    Message::new(header, m.body.clone()).encode().ok()
+}
+
+/// A loop-closure message of z whose first pose value is replaced by `value`, in the
+/// encoded bytes (the encoder would refuse a NaN itself, a hostile peer need not).
+fn closures_with_pose_value(template: &Message, value: f32) -> Option<Vec<u8>> {
+    let Body::LoopClosures(c) = &template.body else {
+        return None;
+    };
+    let first = c.closures.first()?;
+    let marker = first.relative.raw()[0];
+    let mut bytes = template.encode().ok()?;
+    let at = bytes
+        .windows(4)
+        .position(|w| w == marker.to_le_bytes() || w == marker.to_be_bytes())?;
+    bytes[at..at + 4].copy_from_slice(&value.to_le_bytes());
+    Some(bytes)
+}
+
+#[test]
+fn a_hostile_teammate_cannot_crash_stall_or_flood_the_team() {
+    let bus = Bus::new(0.0, 11);
+    let mut a = robot(&bus, "a", 0);
+    let mut b = robot(&bus, "b", 1);
+    let mut z = robot(&bus, "z", 2);
+    let (ida, idb, idz) = (a.id.clone(), b.id.clone(), z.id.clone());
+    let mut now = 0;
+
+    // 1. z meets a and b honestly (its real traffic is what it will forge from).
+    for r in [&a, &b, &z] {
+        r.created.store(KEYFRAMES / 2, Ordering::Release);
+    }
+    bus.join(&ida, &idz);
+    bus.join(&idb, &idz);
+    for _ in 0..3000 {
+        if met(&z, &a, KEYFRAMES / 2) && met(&z, &b, KEYFRAMES / 2) {
+            break;
+        }
+        run(&mut [&mut a, &mut b, &mut z], &mut now, 1);
+    }
+    assert!(
+        met(&z, &a, KEYFRAMES / 2) && met(&z, &b, KEYFRAMES / 2),
+        "z's honest meetings: with a {:?}, with b {:?}",
+        z.node.session(&ida).map(|s| s.stats().clone()),
+        z.node.session(&idb).map(|s| s.stats().clone())
+    );
+    run(&mut [&mut a, &mut b, &mut z], &mut now, 50);
+    let honest: Vec<(RobotId, Message)> = bus
+        .published(&idz)
+        .into_iter()
+        .filter_map(|(to, bytes)| Some((to, Message::decode(&bytes).ok()?)))
+        .collect();
+    let sent_to = |r: &RobotId| honest.iter().filter(|(to, _)| to == r).count() as u64;
+    let honest_to_a = sent_to(&ida);
+    let honest_to_b = sent_to(&idb);
+    // Well-formed descriptor messages for the flood: the ones z received in its meetings
+    // (it plays β to both), sent again under its own name.
+    let received_by_z = |kind: Kind| -> Vec<Message> {
+        [&ida, &idb]
+            .iter()
+            .flat_map(|r| bus.published(r))
+            .filter_map(|(to, bytes)| (to == idz).then(|| Message::decode(&bytes).ok()).flatten())
+            .filter(|m| m.kind() == kind)
+            .map(|mut m| {
+                m.header.sender = idz.clone();
+                m
+            })
+            .collect()
+    };
+    let descriptors = received_by_z(Kind::Descriptors);
+    // Closures for the NaN and absurd poses: the ones a and b verified with z.
+    let closures = received_by_z(Kind::LoopClosures);
+    assert!(!closures.is_empty(), "z received no closures to forge from");
+    assert!(
+        !descriptors.is_empty(),
+        "z received no descriptors to forge from"
+    );
+    // A NaN pose never decodes, whatever else the message gets right.
+    if let Some(c) = closures.first() {
+        let nan = closures_with_pose_value(c, f32::NAN).expect("the pose's bytes are found");
+        assert!(Message::decode(&nan).is_err(), "a NaN closure pose decoded");
+    }
+    let closures_before: Vec<u64> = [&a, &b]
+        .iter()
+        .map(|r| {
+            r.backend
+                .lock()
+                .unwrap()
+                .closures
+                .get("z")
+                .copied()
+                .unwrap_or(0)
+        })
+        .collect();
+
+    // 2. z turns hostile (its node stops; its token stays), a and b fly on: new keyframes,
+    //    a meeting of their own, under the attack.
+    a.created.store(KEYFRAMES, Ordering::Release);
+    b.created.store(KEYFRAMES, Ordering::Release);
+    bus.join(&ida, &idb);
+    let mut rng = Rng(0x05ee_d0fa_77ac);
+    let mut injected = [0u64; 2];
+    let mut by_what = std::collections::BTreeMap::<&str, u64>::new();
+    let kinds: Vec<&str> = Kind::ALL.iter().map(|k| k.name()).collect();
+    let rss_start = rss_kb();
+    let mut rss_after_warmup = 0;
+    let mut sent = 0u64;
+    while sent < HOSTILE_MESSAGES {
+        for _ in 0..BURST {
+            let (_, m) = &honest[rng.below(honest.len() as u64) as usize];
+            let original = m.encode().unwrap();
+            let mut h = m.header.clone();
+            let (what, kind, bytes): (&str, &str, Vec<u8>) = match rng.below(11) {
+                0 => {
+                    let n = rng.below(3000) as usize;
+                    ("garbage", kinds[rng.below(kinds.len() as u64) as usize], {
+                        (0..n).map(|_| rng.next() as u8).collect()
+                    })
+                }
+                1 => {
+                    let cut = rng.below(original.len() as u64) as usize;
+                    ("truncated", m.kind().name(), original[..cut].to_vec())
+                }
+                2 => {
+                    let mut bytes = original.clone();
+                    for _ in 0..1 + rng.below(8) {
+                        let i = rng.below(bytes.len() as u64) as usize;
+                        bytes[i] = rng.next() as u8;
+                    }
+                    ("bit_flipped", m.kind().name(), bytes)
+                }
+                3 => ("replayed", m.kind().name(), original),
+                4 => {
+                    h.epoch = 0;
+                    ("stale_epoch", m.kind().name(), reencoded(m, h).unwrap())
+                }
+                5 => {
+                    h.sequence = h.sequence.wrapping_add(1 + rng.below(u64::MAX / 2));
+                    ("sequence_jump", m.kind().name(), reencoded(m, h).unwrap())
+                }
+                6 => {
+                    h.sender = ida.clone();
+                    ("wrong_sender", m.kind().name(), reencoded(m, h).unwrap())
+                }
+                7 => {
+                    let other = kinds[rng.below(kinds.len() as u64) as usize];
+                    ("wrong_kind", other, original)
+                }
+                8 | 9 if !closures.is_empty() => {
+                    let c = &closures[rng.below(closures.len() as u64) as usize];
+                    let value = if rng.below(2) == 0 { f32::NAN } else { 3.0e38 };
+                    match closures_with_pose_value(c, value) {
+                        Some(bytes) => ("absurd_closure", "loop_closures", bytes),
+                        None => ("replayed", c.kind().name(), c.encode().unwrap()),
+                    }
+                }
+                _ => {
+                    // A descriptor flood: well-formed descriptors under fresh sequences.
+                    let d = &descriptors[rng.below(descriptors.len() as u64) as usize];
+                    let mut h = d.header.clone();
+                    h.sequence = h.sequence.wrapping_add(1 + rng.below(1 << 20));
+                    ("descriptor_flood", "descriptors", reencoded(d, h).unwrap())
+                }
+            };
+            let to = if rng.below(2) == 0 { &ida } else { &idb };
+            injected[usize::from(to == &idb)] += 1;
+            *by_what.entry(what).or_default() += 1;
+            bus.inject(to, &idz, kind, bytes);
+            sent += 1;
+        }
+        run(&mut [&mut a, &mut b], &mut now, 1);
+        if sent == 100_000 {
+            rss_after_warmup = rss_kb();
+        }
+    }
+    // The honest meeting finishes (it may need steps after the attack's last burst, but
+    // not the attack's end: it ran all along).
+    let steps_during_attack = (HOSTILE_MESSAGES / BURST) as usize;
+    for _ in 0..3000 {
+        if met(&a, &b, KEYFRAMES) {
+            break;
+        }
+        run(&mut [&mut a, &mut b], &mut now, 1);
+    }
+    let rss_end = rss_kb();
+    println!(
+        "hostile: {sent} messages ({by_what:?}), {steps_during_attack} steps under attack; \
+         RSS {rss_start} kB at the start, {rss_after_warmup} kB after 100k, {rss_end} kB at the end"
+    );
+    assert!(
+        met(&a, &b, KEYFRAMES),
+        "a and b did not complete their meeting under the attack: a {:?}, b {:?}",
+        a.node.session(&idb).map(|s| s.stats().clone()),
+        b.node.session(&ida).map(|s| s.stats().clone())
+    );
+    for (r, honest_to, injected) in [
+        (&a, honest_to_a, injected[0]),
+        (&b, honest_to_b, injected[1]),
+    ] {
+        let ledger = r.node.ledger().lock().to_file();
+        let (received, dropped) = accounted(&ledger, "z");
+        println!(
+            "{}: z sent {} honest + {injected} hostile; ledger: {received} received, {dropped} dropped {:?}",
+            r.id,
+            honest_to,
+            ledger
+                .dropped
+                .iter()
+                .filter(|d| d.peer == "z")
+                .map(|d| (d.reason.as_str(), d.messages))
+                .collect::<Vec<_>>()
+        );
+        // Every message of z is in the ledger: delivered or dropped with a reason (a message
+        // received and then found a duplicate is in both).
+        assert!(
+            received + dropped >= honest_to + injected,
+            "{}: {} of z's messages are not in the ledger",
+            r.id,
+            honest_to + injected - received - dropped
+        );
+        // The hostile bulk is refused, not taken in: at most one in eleven (the floods'
+        // new sequences and the replays' first copies) can be new to the delivery layer.
+        assert!(
+            dropped >= injected / 2,
+            "{}: only {dropped} of {injected} hostile messages refused",
+            r.id
+        );
+        // The honest exchange with a and b was not refused for z's sake.
+        let d = &ledger.dropped;
+        let honest_peer = if r.id == ida { "b" } else { "a" };
+        assert!(
+            d.iter()
+                .filter(|d| d.peer == honest_peer && d.reason != "duplicate")
+                .all(|d| d.messages == 0),
+            "{}: honest messages dropped: {d:?}",
+            r.id
+        );
+        // Bounded state: the peer's verification packets stay within the cache.
+        let s = r.node.session(&idz).unwrap().stats().clone();
+        assert!(
+            s.features_held as usize <= config().features_cache,
+            "{}: {} packets of z held",
+            r.id,
+            s.features_held
+        );
+    }
+    // Nothing forged got through to a back-end (a new, well-formed closure of z would, and
+    // the back-end's PCM judges it: the rendezvous tests).
+    let closures_after: Vec<u64> = [&a, &b]
+        .iter()
+        .map(|r| {
+            r.backend
+                .lock()
+                .unwrap()
+                .closures
+                .get("z")
+                .copied()
+                .unwrap_or(0)
+        })
+        .collect();
+    println!("closures of z handed to the back-ends: before {closures_before:?}, after {closures_after:?}");
+    // Every forged closure was undecodable (NaN), stale, or a copy of a sequence already
+    // delivered (absurd values under an old sequence number): none is new to a back-end.
+    assert_eq!(
+        closures_after, closures_before,
+        "forged closures reached a back-end"
+    );
+    // Memory: flat after warm-up (the attack carried ~1 GB of payload through the robots).
+    assert!(
+        rss_end < rss_after_warmup + 32 * 1024,
+        "memory grew from {rss_after_warmup} kB to {rss_end} kB under the attack"
+    );
+}
