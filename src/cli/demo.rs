@@ -48,9 +48,10 @@ pub struct DemoArgs {
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Kill every process of one robot at a flight time, e.g. `b@12`; it restarts after
-    /// `--restart-after-s` from its journal and rejoins.
+    /// `--restart-after-s` from its journal and rejoins. Repeat for several robots (a chaos
+    /// run: `--kill a@30 --kill b@50 --drop 0.3`), at most once per robot.
     #[arg(long)]
-    pub kill: Option<Kill>,
+    pub kill: Vec<Kill>,
     #[arg(long, default_value_t = 3.0)]
     pub restart_after_s: f64,
     /// Replay speed (1 = real time).
@@ -141,7 +142,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
     config.drop = args.drop;
     config.world = args.world.clone();
     config.dataset = args.dataset.clone();
-    config.kill = args.kill;
+    config.kills = args.kill;
     config.restart_after_s = args.restart_after_s;
     config.rate = args.rate;
     config.seed = args.seed;

@@ -71,7 +71,9 @@ pub struct DemoConfig {
     /// A world rendered before (an earlier demo's `<out>/world`, or `doorslam sim world`):
     /// flown instead of rendering a new one.
     pub world: Option<PathBuf>,
-    pub kill: Option<Kill>,
+    /// `--kill ROBOT@SECONDS`, any number (at most one per robot): each robot's processes
+    /// killed at its time and restarted `restart_after_s` later.
+    pub kills: Vec<Kill>,
     /// Probability that a packet between robots is lost (nftables, at random), or none.
     pub drop: Option<f64>,
     /// Seconds between a kill and the restart.
@@ -107,7 +109,7 @@ impl DemoConfig {
             radio_range_m: FlightConfig::default().radio_range_m,
             dataset: None,
             world: None,
-            kill: None,
+            kills: Vec::new(),
             drop: None,
             restart_after_s: 3.0,
             rate: 1.0,
@@ -129,12 +131,18 @@ impl DemoConfig {
         if self.frames < 10 {
             return bad(format!("frames = {}: at least 10", self.frames));
         }
-        if let Some(k) = self.kill {
+        for (i, k) in self.kills.iter().enumerate() {
             if k.robot >= self.robots {
                 return bad(format!(
                     "kill: robot {} is not in a team of {}",
                     robot_name(k.robot),
                     self.robots
+                ));
+            }
+            if self.kills[..i].iter().any(|o| o.robot == k.robot) {
+                return bad(format!(
+                    "kill: robot {} is killed twice (one --kill per robot)",
+                    robot_name(k.robot)
                 ));
             }
         }

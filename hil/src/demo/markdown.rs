@@ -222,18 +222,26 @@ pub fn report(s: &Summary, bw_table: &str) -> String {
             let _ = writeln!(t, "- no random loss between robots (`--drop`)");
         }
     }
-    match &s.kill {
-        Some(k) => {
-            let _ = writeln!(
-                t,
-                "- `--kill {}@{}`: every process of robot {} SIGKILLed at {} s of flight, restarted {} s later.\n",
-                k.robot, k.at_s, k.robot, k.at_s, k.restart_after_s
-            );
-        }
-        None => {
-            let _ = writeln!(t, "- no robot killed (`--kill`)\n");
-        }
+    if s.kills.is_empty() {
+        let _ = writeln!(t, "- no robot killed (`--kill`)");
     }
+    for k in &s.kills {
+        let _ = writeln!(
+            t,
+            "- `--kill {}@{}`: every process of robot {} SIGKILLed at {} s of flight, restarted {} s later; {}.",
+            k.robot,
+            k.at_s,
+            k.robot,
+            k.at_s,
+            k.restart_after_s,
+            if k.in_team_frame {
+                "back in the team's frame at the end"
+            } else {
+                "**not back in the team's frame at the end**"
+            }
+        );
+    }
+    let _ = writeln!(t);
 
     let _ = writeln!(t, "## Real time and CPU\n");
     let _ = writeln!(

@@ -126,6 +126,15 @@ pub struct RunLog {
     pub security: SecuritySummary,
 }
 
+/// Where one `--kill` is in the run.
+#[derive(Debug, Clone, Copy)]
+enum KillState {
+    Pending,
+    /// Killed at this instant, not yet restarted.
+    Down(Instant),
+    Restarted,
+}
+
 /// How the team link of the run was secured (`summary.json` `security`).
 #[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct SecuritySummary {
@@ -332,8 +341,7 @@ pub fn run(
     let flight_time =
         |now: Instant| now.saturating_duration_since(clock_start).as_secs_f64() * config.rate;
     let mut events = world.events.iter().peekable();
-    let mut killed_at: Option<Instant> = None;
-    let mut restarted = false;
+    let mut kill_state = vec![KillState::Pending; config.kills.len()];
     let mut last_sample = Instant::now() - Duration::from_secs(1);
     let t_flight = Instant::now();
     let machine_before = cpu::machine_busy_s();
@@ -370,24 +378,25 @@ pub fn run(
                 letter(b)
             ));
         }
-        if let Some(k) = &config.kill {
-            if killed_at.is_none() && !restarted && ft >= k.at_s {
-                // The killed processes' last readings: what they used until now.
-                meter.sample(&groups(&robots));
-                robots[k.robot].kill()?;
-                killed_at = Some(now);
-                log.timeline.push(TimelineEvent {
-                    t_s: ft,
-                    event: "killed (every process, SIGKILL)".into(),
-                    robots: vec![letter(k.robot).to_string()],
-                });
-                snap.note = Some(format!("{ft:5.1} s  robot {} killed", letter(k.robot)));
-            }
-            if let Some(at) = killed_at {
-                if now.duration_since(at).as_secs_f64() >= config.restart_after_s {
+        for (k, state) in config.kills.iter().zip(kill_state.iter_mut()) {
+            match *state {
+                KillState::Pending if ft >= k.at_s => {
+                    // The killed processes' last readings: what they used until now.
+                    meter.sample(&groups(&robots));
+                    robots[k.robot].kill()?;
+                    *state = KillState::Down(now);
+                    log.timeline.push(TimelineEvent {
+                        t_s: ft,
+                        event: "killed (every process, SIGKILL)".into(),
+                        robots: vec![letter(k.robot).to_string()],
+                    });
+                    snap.note = Some(format!("{ft:5.1} s  robot {} killed", letter(k.robot)));
+                }
+                KillState::Down(at)
+                    if now.duration_since(at).as_secs_f64() >= config.restart_after_s =>
+                {
                     robots[k.robot].start(&config.exe, net.as_ref())?;
-                    killed_at = None;
-                    restarted = true;
+                    *state = KillState::Restarted;
                     log.timeline.push(TimelineEvent {
                         t_s: ft,
                         event: "restarted (journal, new epochs)".into(),
@@ -395,6 +404,7 @@ pub fn run(
                     });
                     snap.note = Some(format!("{ft:5.1} s  robot {} restarted", letter(k.robot)));
                 }
+                _ => {}
             }
         }
         for robot in &mut robots {
@@ -411,7 +421,8 @@ pub fn run(
                 .push((ft, snap.robots.iter().map(|r| r.bytes_sent).collect()));
         }
         progress(&snap);
-        if ft >= flight_total_s + 1.0 && killed_at.is_none() {
+        let robots_down = kill_state.iter().any(|k| matches!(k, KillState::Down(_)));
+        if ft >= flight_total_s + 1.0 && !robots_down {
             break;
         }
         std::thread::sleep(Duration::from_millis(250));

@@ -140,6 +140,8 @@ pub struct KillSummary {
     pub robot: String,
     pub at_s: f64,
     pub restart_after_s: f64,
+    /// Whether the robot ended in the team's frame (what the team lost by the kill).
+    pub in_team_frame: bool,
 }
 
 /// The flights: how they were planned, and what ground truth says of them.
@@ -193,8 +195,10 @@ pub struct Summary {
     pub scenario: Scenario,
     /// `--drop`: random loss between robots, or null.
     pub drop: Option<DropSummary>,
-    /// `--kill`: the robot killed, when, and after how long it restarted; or null.
+    /// The first `--kill`: the robot killed, when, and after how long it restarted; or null.
     pub kill: Option<KillSummary>,
+    /// Every `--kill`, in the order given, with what the team made of the robot after it.
+    pub kills: Vec<KillSummary>,
     /// How the team link was secured (mutual TLS + access control unless `--insecure`).
     pub security: super::SecuritySummary,
     /// Whether every robot kept up with its camera on this machine.
@@ -654,6 +658,19 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
         (None, None) => format!("synthetic town, seed {}", config.seed),
     };
 
+    let kills: Vec<KillSummary> = config
+        .kills
+        .iter()
+        .map(|k| {
+            let robot = robot_name(k.robot).to_string();
+            KillSummary {
+                in_team_frame: per_robot.get(&robot).is_some_and(|r| r.in_team_frame),
+                robot,
+                at_s: k.at_s,
+                restart_after_s: config.restart_after_s,
+            }
+        })
+        .collect();
     let report_s = t_report.elapsed().as_secs_f64();
     let summary = Summary {
         robots: n,
@@ -674,11 +691,8 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
             packets,
             dropped,
         }),
-        kill: config.kill.map(|k| KillSummary {
-            robot: robot_name(k.robot).to_string(),
-            at_s: k.at_s,
-            restart_after_s: config.restart_after_s,
-        }),
+        kill: kills.first().cloned(),
+        kills,
         security: log.security.clone(),
         bandwidth,
         timeline: log.timeline.clone(),
