@@ -63,7 +63,10 @@ pub struct Node {
     sessions: BTreeMap<RobotId, PeerSession>,
     ledger: LedgerHandle,
     pieces: Pieces,
-    /// Messages whose encoding failed (our own bug, not the peer's): counted, never sent.
+    /// Messages whose encoding failed when sent (our own bug, not the peer's): counted,
+    /// never sent. Every body is checked when queued (refused there, see
+    /// [`crate::delivery::QueueError`]), so this stays 0 unless a Hello or an
+    /// acknowledgement, which the link makes itself, fails.
     pub encode_failures: u64,
     /// Publishes the link refused.
     pub publish_failures: u64,
@@ -84,6 +87,11 @@ impl Node {
 
     pub fn identity(&self) -> &Identity {
         &self.me
+    }
+
+    /// The protocol's tunables (and bounds) of every session.
+    pub fn config(&self) -> &ProtocolConfig {
+        &self.config
     }
 
     pub fn ledger(&self) -> &LedgerHandle {
