@@ -166,6 +166,8 @@ pub struct ProtocolConfig {
     /// α: putative pairs waiting for their verification packet at most (oldest dropped
     /// first, counted in `matches_dropped`).
     pub pending_matches: usize,
+    /// Peer sessions a node holds at most ([`crate::node::Node`]).
+    pub max_peers: usize,
 }
 
 impl ProtocolConfig {
@@ -191,6 +193,9 @@ impl Default for ProtocolConfig {
             outbox_limit: 1024,
             seen_ids: 16384,
             pending_matches: 4096,
+            // Every robot has a key letter: a team has at most this many, so a real peer
+            // always finds room.
+            max_peers: usize::from(key::MAX_ROBOTS),
         }
     }
 }

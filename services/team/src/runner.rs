@@ -65,6 +65,9 @@ pub struct TeamSection {
     /// Ids kept by each set that prevents processing twice (older ones count as seen).
     #[serde(default = "default_seen_ids")]
     pub seen_ids: usize,
+    /// Peer sessions held at most (one per robot id heard).
+    #[serde(default = "default_max_peers")]
+    pub max_peers: usize,
     /// Size of one raw keyframe image (8-bit grayscale), the comparison of `doorslam bw`.
     #[serde(default = "default_width")]
     pub raw_image_width: u64,
@@ -151,6 +154,9 @@ fn default_pending_matches() -> usize {
 fn default_seen_ids() -> usize {
     ProtocolConfig::default().seen_ids
 }
+fn default_max_peers() -> usize {
+    ProtocolConfig::default().max_peers
+}
 fn default_width() -> u64 {
     752
 }
@@ -207,6 +213,7 @@ impl Default for TeamSection {
             features_cache: default_features_cache(),
             pending_matches: default_pending_matches(),
             seen_ids: default_seen_ids(),
+            max_peers: default_max_peers(),
             raw_image_width: default_width(),
             raw_image_height: default_height(),
             pieces: PiecesKind::default(),
@@ -248,6 +255,7 @@ impl TeamSection {
             features_cache: self.features_cache,
             pending_matches: self.pending_matches,
             seen_ids: self.seen_ids,
+            max_peers: self.max_peers,
             ..ProtocolConfig::default()
         }
     }
@@ -269,13 +277,14 @@ impl TeamSection {
         }
         // Each bound at least 1 (0 would stall its kind or forget at once), and at most
         // 2^20: a bound is there to cap memory, one larger is a typo.
-        let bounds: [(&'static str, u64); 6] = [
+        let bounds: [(&'static str, u64); 7] = [
             ("window", self.window as u64),
             ("receive_window", self.receive_window),
             ("outbox_limit", self.outbox_limit as u64),
             ("features_cache", self.features_cache as u64),
             ("pending_matches", self.pending_matches as u64),
             ("seen_ids", self.seen_ids as u64),
+            ("max_peers", self.max_peers as u64),
         ];
         for (key, value) in bounds {
             if !(1..=1 << 20).contains(&value) {
@@ -339,6 +348,11 @@ pub struct Status {
     pub encode_failures: u64,
     #[serde(default)]
     pub publish_failures: u64,
+    /// Peers refused (or sessions evicted) to stay within `max_peers`.
+    #[serde(default)]
+    pub peers_refused: u64,
+    #[serde(default)]
+    pub peers_evicted: u64,
 }
 
 /// `status.json`'s `bounds`.
@@ -350,6 +364,7 @@ pub struct Bounds {
     pub features_cache: usize,
     pub pending_matches: usize,
     pub seen_ids: usize,
+    pub max_peers: usize,
 }
 
 impl From<&ProtocolConfig> for Bounds {
@@ -361,6 +376,7 @@ impl From<&ProtocolConfig> for Bounds {
             features_cache: c.features_cache,
             pending_matches: c.pending_matches,
             seen_ids: c.seen_ids,
+            max_peers: c.max_peers,
         }
     }
 }
@@ -571,6 +587,8 @@ fn status_of(
         bounds: Some(Bounds::from(node.config())),
         encode_failures: node.encode_failures,
         publish_failures: node.publish_failures,
+        peers_refused: node.peers_refused,
+        peers_evicted: node.peers_evicted,
     }
 }
 
@@ -686,6 +704,8 @@ pub fn run_robot(
             bounds: Some(Bounds::from(&config)),
             encode_failures: 0,
             publish_failures: 0,
+            peers_refused: 0,
+            peers_evicted: 0,
         });
     };
     side.epoch_started(epoch)?;
