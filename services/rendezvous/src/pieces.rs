@@ -44,6 +44,10 @@ pub struct MatchSettings {
     /// [`MAX_PACKET_FEATURES`]: ≤ 20 kB).
     pub max_packet_features: usize,
     pub verify: VerifyConfig,
+    /// The back-end's messages waiting for one peer robot (while it is away) at most: a
+    /// state message merges into the newest waiting one of its slot first; beyond, the
+    /// new one is refused (`for_peer_refused`).
+    pub for_peer_limit: usize,
 }
 
 impl Default for MatchSettings {
@@ -55,6 +59,9 @@ impl Default for MatchSettings {
             temporal_exclusion: 10,
             max_packet_features: MAX_PACKET_FEATURES,
             verify: VerifyConfig::default(),
+            // Every back-end kind is a state kind, merged per slot: what waits for a peer
+            // is a few messages per robot of the team; this is far above that.
+            for_peer_limit: 1024,
         }
     }
 }
@@ -84,6 +91,10 @@ pub struct PiecesStats {
     pub closures_to_backend: u64,
     pub messages_to_backend: u64,
     pub messages_from_backend: u64,
+    /// The back-end's messages for a peer merged into a waiting one of their slot, and
+    /// refused because `for_peer_limit` were waiting.
+    pub for_peer_superseded: u64,
+    pub for_peer_refused: u64,
     /// Closures handed to the back-end, per peer.
     pub closures_by_peer: BTreeMap<String, u64>,
     /// Back-end messages received from each peer (relayed to the back-end).
@@ -360,10 +371,31 @@ impl Shared {
     pub fn queue_for_peer(&self, peer_robot: u8, message: Message) {
         let mut s = self.lock();
         s.stats.messages_from_backend += 1;
-        s.for_peers
-            .entry(peer_robot)
-            .or_default()
-            .push_back(message.body);
+        let limit = s.settings.for_peer_limit;
+        let body = message.body;
+        let queue = s.for_peers.entry(peer_robot).or_default();
+        // The newest of its slot: an update composes with the version just before it.
+        if let Some(slot) = body.slot() {
+            if let Some(at) = queue.iter().rposition(|b| b.slot() == Some(slot)) {
+                if queue[at].supersede(body.clone()).is_ok() {
+                    s.stats.for_peer_superseded += 1;
+                    return;
+                }
+            }
+        }
+        if queue.len() >= limit {
+            // Refused, not an older one dropped: the peer must get what it gets in order
+            // (a graph update names the version before it).
+            tracing::warn!(
+                peer_robot,
+                kind = body.kind().name(),
+                limit,
+                "back-end message for an absent peer refused: for_peer_limit waiting"
+            );
+            s.stats.for_peer_refused += 1;
+            return;
+        }
+        queue.push_back(body);
     }
 
     /// Envelopes and closures for the back-end, oldest first.
@@ -823,6 +855,76 @@ mod tests {
     }
 
     /// Settings with the chain cut down to the nearest candidate (tests of other parts).
+    /// The back-end's messages for an absent peer, ten times `for_peer_limit` of them:
+    /// state messages merge per slot (one waits, the newest), stream ones stop at the
+    /// bound (the rest refused, counted), and the peer, when present, gets the first ones
+    /// in order.
+    #[test]
+    fn messages_for_an_absent_peer_stay_within_their_bound() {
+        use doorslam_ipc::wire::{Descriptors, Route};
+        let settings = MatchSettings {
+            for_peer_limit: 8,
+            ..Default::default()
+        };
+        let s = Shared::new(0, calib(), settings);
+        let header = Header {
+            sender: RobotId::new("b").unwrap(),
+            epoch: 1,
+            sequence: 0,
+        };
+        for i in 0..80u64 {
+            s.queue_for_peer(
+                1,
+                Message::new(
+                    header.clone(),
+                    Body::Route(Route {
+                        path: vec![0],
+                        subtree: 0,
+                        session: i,
+                    }),
+                ),
+            );
+            s.queue_for_peer(
+                1,
+                Message::new(
+                    header.clone(),
+                    Body::Descriptors(Descriptors {
+                        robot: 0,
+                        keyframes: i..i + 1,
+                        descriptors: Vec::new(),
+                    }),
+                ),
+            );
+        }
+        let stats = s.stats();
+        assert_eq!(stats.for_peer_superseded, 79);
+        assert_eq!(
+            stats.for_peer_refused, 73,
+            "8 waiting: the route and 7 batches"
+        );
+        let peer = RobotId::new("b").unwrap();
+        let mut relay = BackendRelay(s.clone());
+        relay.presence(&peer, 1, 1, true);
+        let bodies = relay.messages_for(&peer);
+        assert_eq!(bodies.len(), 8);
+        assert_eq!(
+            bodies[0],
+            Body::Route(Route {
+                path: vec![0],
+                subtree: 0,
+                session: 79
+            })
+        );
+        let starts: Vec<u64> = bodies[1..]
+            .iter()
+            .filter_map(|b| match b {
+                Body::Descriptors(d) => Some(d.keyframes.start),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(starts, (0..7).collect::<Vec<_>>());
+    }
+
     fn nearest_only() -> MatchSettings {
         MatchSettings {
             chain: ChainConfig::top_k_only(1, 0.367),

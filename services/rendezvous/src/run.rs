@@ -198,6 +198,13 @@ pub struct RendezvousSection {
     pub max_packet_features: usize,
     #[serde(default)]
     pub verify: doorslam_frontend::VerifyConfig,
+    /// The back-end's messages waiting for one absent peer at most (see [`MatchSettings`]).
+    #[serde(default = "default_for_peer_limit")]
+    pub for_peer_limit: usize,
+}
+
+fn default_for_peer_limit() -> usize {
+    MatchSettings::default().for_peer_limit
 }
 
 fn default_packet() -> usize {
@@ -209,6 +216,7 @@ impl Default for RendezvousSection {
         Self {
             max_packet_features: default_packet(),
             verify: doorslam_frontend::VerifyConfig::default(),
+            for_peer_limit: default_for_peer_limit(),
         }
     }
 }
@@ -223,6 +231,12 @@ impl RendezvousSection {
             return Err(format!(
                 "rendezvous.max_packet_features = {}: from verify.min_inliers ({}) to {max} (≤ 20 kB per packet)",
                 self.max_packet_features, self.verify.min_inliers
+            ));
+        }
+        if !(1..=1 << 20).contains(&self.for_peer_limit) {
+            return Err(format!(
+                "rendezvous.for_peer_limit = {}: from 1 to 1048576",
+                self.for_peer_limit
             ));
         }
         Ok(())
@@ -242,6 +256,7 @@ impl RendezvousSection {
             temporal_exclusion,
             max_packet_features: self.max_packet_features,
             verify: self.verify.clone(),
+            for_peer_limit: self.for_peer_limit,
         }
     }
 }

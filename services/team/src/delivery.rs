@@ -12,6 +12,13 @@
 //! to 16 times that, and at once at the start of a meeting; it gets its sequence when it
 //! is first sent, so the sequences of a kind are consecutive on the wire.
 //!
+//! What waits is bounded too: at most `outbox_limit` messages per kind (a state message
+//! merges into the newest waiting one of its slot first, which takes no room). A message
+//! that would go beyond it is refused at queueing with [`QueueError::Full`] and counted,
+//! never dropped later: what is queued is delivered in order or not at all. So is a
+//! message that does not encode or is larger than the wire's limit ([`QueueError`]): it
+//! would never be sent, and kept in flight it would block its kind for good.
+//!
 //! Receiving: per kind the next sequence expected and a hold-back buffer of at most
 //! `hold_back` messages that came early; a message is delivered when every earlier one
 //! of its kind has been, then the ones it held back behind it. What is below the next
@@ -29,7 +36,9 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use doorslam_ipc::wire::{Ack, Body, Header, Hello, Kind, Message, RobotId, Slot, MAX_ACK_RANGES};
+use doorslam_ipc::wire::{
+    Ack, Body, Header, Hello, Kind, Message, RobotId, Slot, MAX_ACK_RANGES, MAX_MESSAGE_BYTES,
+};
 
 /// Tunables of delivery.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -41,6 +50,56 @@ pub struct DeliveryConfig {
     pub window: usize,
     /// Messages of one kind the receiver holds back for order at most.
     pub hold_back: u64,
+    /// Messages of one kind waiting to be sent at most (beyond: refused at queueing).
+    pub outbox_limit: usize,
+}
+
+/// Why a message was not queued (nothing of it is sent; counted in [`DeliveryStats`]).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum QueueError {
+    /// The encoder refuses it (a count beyond the wire's limits, a bad key or value): a
+    /// bug of the piece that made it, never the peer's.
+    #[error("{kind:?} message does not encode ({bytes} bytes up to the error): {reason}")]
+    Unencodable {
+        kind: Kind,
+        bytes: usize,
+        reason: String,
+    },
+    /// Larger than any peer decodes.
+    #[error("{kind:?} message of {bytes} bytes is larger than the wire limit of {max} bytes")]
+    TooLarge {
+        kind: Kind,
+        bytes: usize,
+        max: usize,
+    },
+    /// Its kind's outbox holds `outbox_limit` messages already (the peer is slower than
+    /// what is made for it, or away).
+    #[error("{kind:?} message of {bytes} bytes refused: {waiting} messages of its kind wait to be sent (outbox_limit {limit})")]
+    Full {
+        kind: Kind,
+        bytes: usize,
+        waiting: usize,
+        limit: usize,
+    },
+}
+
+impl QueueError {
+    /// Short name for counters and logs.
+    pub fn reason(&self) -> &'static str {
+        match self {
+            QueueError::Unencodable { .. } => "unencodable",
+            QueueError::TooLarge { .. } => "too_large",
+            QueueError::Full { .. } => "outbox_full",
+        }
+    }
+
+    pub fn kind(&self) -> Kind {
+        match self {
+            QueueError::Unencodable { kind, .. }
+            | QueueError::TooLarge { kind, .. }
+            | QueueError::Full { kind, .. } => *kind,
+        }
+    }
 }
 
 /// Counters of delivery with one peer (in `status.json` through the session's stats).
@@ -58,6 +117,12 @@ pub struct DeliveryStats {
     pub sessions: u64,
     /// State messages dropped at a restart of the peer (its back-end is sent anew).
     pub dropped_at_restart: u64,
+    /// Messages refused at queueing because their kind's outbox was full.
+    #[serde(default)]
+    pub refused_full: u64,
+    /// Messages refused at queueing because they do not encode or exceed the wire limit.
+    #[serde(default)]
+    pub refused_unencodable: u64,
 }
 
 #[derive(Debug, Clone)]
@@ -240,36 +305,95 @@ impl Delivery {
         self.hello_seen = None;
     }
 
-    /// Queues `body` behind what waits of its kind; a state message absorbs into the one
-    /// of its slot still waiting.
-    pub fn queue(&mut self, body: Body) {
+    /// `body` as it will go on the wire, checked: it encodes and fits the wire's limit.
+    /// The header is the largest this session can give it (sequence `u64::MAX`), so the
+    /// real one is never longer.
+    fn check(&self, body: Body) -> Result<Body, (QueueError, Body)> {
+        let msg = Message::new(self.header(u64::MAX), body);
+        let kind = msg.kind();
+        match msg.encode() {
+            Err(e) => {
+                let bytes = msg.encoded_len();
+                Err((
+                    QueueError::Unencodable {
+                        kind,
+                        bytes,
+                        reason: e.to_string(),
+                    },
+                    msg.body,
+                ))
+            }
+            Ok(b) if b.len() > MAX_MESSAGE_BYTES => Err((
+                QueueError::TooLarge {
+                    kind,
+                    bytes: b.len(),
+                    max: MAX_MESSAGE_BYTES,
+                },
+                msg.body,
+            )),
+            Ok(_) => Ok(msg.body),
+        }
+    }
+
+    /// Queues `body` behind what waits of its kind; a state message absorbs into the
+    /// newest one of its slot still waiting (if the two still encode as one). Refused,
+    /// with nothing queued, when it does not encode or its kind's outbox is full.
+    pub fn queue(&mut self, body: Body) -> Result<(), QueueError> {
+        let body = match self.check(body) {
+            Ok(b) => b,
+            Err((e, _)) => {
+                self.stats.refused_unencodable += 1;
+                return Err(e);
+            }
+        };
         let slot = body.slot();
         // A kind first sent in this session numbers from the session's base, as the peer's
         // inbox expects (its Hello said so): from 0 it would take them for duplicates of an
         // older session and never deliver them (a restarted peer's first back-end message
         // lost for good).
         let base = self.base;
-        let outbox = self.outboxes.entry(body.kind()).or_insert_with(|| Outbox {
+        let kind = body.kind();
+        let outbox = self.outboxes.entry(kind).or_insert_with(|| Outbox {
             next_seq: base,
             ..Outbox::default()
         });
         if let Some(s) = slot {
-            if let Some((_, waiting)) = outbox.waiting.iter_mut().find(|(x, _)| *x == Some(s)) {
-                match waiting.supersede(body) {
-                    Ok(()) => {
+            // The newest of its slot: an update composes with the version just before it
+            // (a graph delta names its base), not with an older one.
+            if let Some(at) = outbox.waiting.iter().rposition(|(x, _)| *x == Some(s)) {
+                let mut merged = outbox.waiting[at].1.clone();
+                // Merged, the two may not go on the wire as one (each was checked alone):
+                // then both wait, one after the other.
+                if merged.supersede(body.clone()).is_ok() {
+                    if let Ok(m) = self.check(merged) {
+                        if let Some(o) = self.outboxes.get_mut(&kind) {
+                            o.waiting[at].1 = m;
+                        }
                         self.stats.superseded += 1;
-                        return;
-                    }
-                    Err(newer) => {
-                        outbox.waiting.push((slot, newer));
-                        return;
+                        return Ok(());
                     }
                 }
             }
         }
+        let Some(outbox) = self.outboxes.get_mut(&kind) else {
+            return Ok(());
+        };
+        let limit = self.config.outbox_limit;
+        if outbox.waiting.len() >= limit {
+            let waiting = outbox.waiting.len();
+            self.stats.refused_full += 1;
+            let bytes = Message::new(self.header(u64::MAX), body).encoded_len();
+            return Err(QueueError::Full {
+                kind,
+                bytes,
+                waiting,
+                limit,
+            });
+        }
         outbox.waiting.push((slot, body));
         let waiting: usize = self.outboxes.values().map(|o| o.waiting.len()).sum();
         self.stats.most_waiting = self.stats.most_waiting.max(waiting as u64);
+        Ok(())
     }
 
     /// Messages of `kind` in flight or waiting.
@@ -492,13 +616,14 @@ impl Delivery {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use doorslam_ipc::wire::{LoopClosures, Route};
+    use doorslam_ipc::wire::{Descriptors, LoopClosures, Match, Matches, Route};
 
     fn config() -> DeliveryConfig {
         DeliveryConfig {
             retransmit_ms: 100,
             window: 8,
             hold_back: 64,
+            outbox_limit: 16,
         }
     }
 
@@ -518,7 +643,7 @@ mod tests {
         let mut a = Delivery::new(me, 0, 1, config());
         a.start_session(Some(1), false);
         for _ in 0..3 {
-            a.queue(closures());
+            a.queue(closures()).unwrap();
         }
         assert_eq!(a.poll(0, Some(1)).len(), 4, "a Hello and three messages");
         // The peer restarts (epoch 2): a new session, and then the first route.
@@ -528,7 +653,8 @@ mod tests {
             path: vec![0],
             subtree: 0,
             session: 0,
-        }));
+        }))
+        .unwrap();
         let out = a.poll(1, Some(2));
         let mut b = Delivery::new(RobotId::new("b").unwrap(), 1, 2, config());
         let mut delivered = Vec::new();
@@ -555,5 +681,147 @@ mod tests {
                 .count(),
             3
         );
+    }
+
+    fn batch(i: u64) -> Body {
+        Body::Descriptors(Descriptors {
+            robot: 0,
+            keyframes: i..i + 1,
+            descriptors: Vec::new(),
+        })
+    }
+
+    fn route(session: u64) -> Body {
+        Body::Route(Route {
+            path: vec![0],
+            subtree: 0,
+            session,
+        })
+    }
+
+    /// Every message of `a`'s outbox handed to a fresh peer, polling until idle: the
+    /// bodies delivered, in order.
+    fn drain(a: &mut Delivery) -> Vec<Body> {
+        let mut b = Delivery::new(RobotId::new("b").unwrap(), 1, 1, config());
+        let mut delivered = Vec::new();
+        for now in 0..1000 {
+            let out = a.poll(now * 1000, Some(1));
+            if out.is_empty() && a.idle() {
+                break;
+            }
+            for o in out {
+                let m = o.message;
+                match m.body {
+                    Body::Hello(h) => {
+                        b.hello(m.header.sequence, &h);
+                    }
+                    Body::Ack(_) => {}
+                    body => {
+                        if let Arrived::Deliver(run) = b.arrive(m.header, body) {
+                            delivered.extend(run.into_iter().map(|(_, b)| b));
+                        }
+                    }
+                }
+            }
+            for o in b.poll(now * 1000, Some(1)) {
+                if let Body::Ack(ack) = &o.message.body {
+                    a.acknowledged(ack).unwrap();
+                }
+            }
+        }
+        delivered
+    }
+
+    /// A stream kind flooded with ten times its outbox bound while the peer is away: what
+    /// waits stays at the bound, the rest is refused at queueing (counted, typed), and what
+    /// was queued is delivered whole and in order — nothing queued is dropped.
+    #[test]
+    fn a_full_stream_outbox_refuses_new_messages_and_keeps_the_queued_ones() {
+        let mut a = Delivery::new(RobotId::new("a").unwrap(), 0, 1, config());
+        a.start_session(Some(1), false);
+        let limit = config().outbox_limit;
+        let mut refused = 0;
+        for i in 0..10 * limit as u64 {
+            match a.queue(batch(i)) {
+                Ok(()) => {}
+                Err(QueueError::Full {
+                    kind,
+                    waiting,
+                    limit: l,
+                    bytes,
+                }) => {
+                    assert_eq!(kind, Kind::Descriptors);
+                    assert_eq!((waiting, l), (limit, limit));
+                    assert!(bytes > 0);
+                    refused += 1;
+                }
+                Err(e) => panic!("unexpected refusal {e}"),
+            }
+            assert!(a.unsettled(Kind::Descriptors) <= limit);
+        }
+        assert_eq!(refused, 9 * limit);
+        assert_eq!(a.stats.refused_full, 9 * limit as u64);
+        let delivered = drain(&mut a);
+        let ranges: Vec<u64> = delivered
+            .iter()
+            .filter_map(|b| match b {
+                Body::Descriptors(d) => Some(d.keyframes.start),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(ranges, (0..limit as u64).collect::<Vec<_>>());
+        // Room again once delivered.
+        assert!(a.queue(batch(999)).is_ok());
+    }
+
+    /// A state kind flooded with ten times the bound: each newer message supersedes the
+    /// one waiting, so one waits, nothing is refused, and the peer gets the newest.
+    #[test]
+    fn a_flooded_state_slot_keeps_only_the_newest() {
+        let mut a = Delivery::new(RobotId::new("a").unwrap(), 0, 1, config());
+        a.start_session(Some(1), false);
+        let n = 10 * config().outbox_limit as u64;
+        for i in 0..n {
+            a.queue(route(i)).unwrap();
+            assert_eq!(a.unsettled(Kind::Route), 1);
+        }
+        assert_eq!(a.stats.superseded, n - 1);
+        assert_eq!(a.stats.refused_full, 0);
+        let delivered = drain(&mut a);
+        assert_eq!(delivered, vec![route(n - 1)]);
+    }
+
+    /// A message the encoder refuses is refused at queueing, naming its kind, and nothing
+    /// of it stays to be retried: the outbox is idle and the next message goes.
+    #[test]
+    fn an_unencodable_message_is_refused_at_queueing() {
+        let mut a = Delivery::new(RobotId::new("a").unwrap(), 0, 1, config());
+        a.start_session(Some(1), false);
+        let pair = Match {
+            query: doorslam_geometry::key::symbol(0, 1).unwrap(),
+            candidate: doorslam_geometry::key::symbol(1, 1).unwrap(),
+            distance: 0.5,
+        };
+        let big = Body::Matches(Matches {
+            matches: vec![pair; doorslam_ipc::wire::MAX_MATCHES + 1],
+        });
+        match a.queue(big) {
+            Err(QueueError::Unencodable {
+                kind,
+                bytes,
+                reason,
+            }) => {
+                assert_eq!(kind, Kind::Matches);
+                assert!(bytes > 0);
+                assert!(reason.contains("match count"), "{reason}");
+            }
+            other => panic!("expected Unencodable, got {other:?}"),
+        }
+        assert_eq!(a.stats.refused_unencodable, 1);
+        assert_eq!(a.unsettled(Kind::Matches), 0);
+        a.queue(closures()).unwrap();
+        let delivered = drain(&mut a);
+        assert_eq!(delivered.len(), 1);
+        assert!(a.idle());
     }
 }

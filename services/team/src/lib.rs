@@ -11,6 +11,7 @@
 //!   traits it calls into ([`DescriptorSource`], [`Verifier`], [`BackendExchange`]).
 //! - [`node`]: one robot's end, over any [`Link`]; checks every incoming message (known
 //!   peer, decodes, sender), counts it in the [`ledger`], routes it to its peer's session.
+//! - [`seen`]: the bounded sets of ids already processed (a window above a rising floor).
 //! - [`zenoh_link`]: the [`Link`] over Zenoh, with discovery by liveliness tokens.
 //! - [`emulate`]: an in-process [`Link`] with loss and cuts, for tests.
 //! - [`standin`]: simulated descriptors, a truth-table verifier, back-end stand-ins.
@@ -31,6 +32,7 @@ pub mod protocol;
 pub mod router;
 pub mod runner;
 pub mod security;
+pub mod seen;
 pub mod standin;
 pub mod zenoh_link;
 

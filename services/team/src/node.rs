@@ -63,10 +63,17 @@ pub struct Node {
     sessions: BTreeMap<RobotId, PeerSession>,
     ledger: LedgerHandle,
     pieces: Pieces,
-    /// Messages whose encoding failed (our own bug, not the peer's): counted, never sent.
+    /// Messages whose encoding failed when sent (our own bug, not the peer's): counted,
+    /// never sent. Every body is checked when queued (refused there, see
+    /// [`crate::delivery::QueueError`]), so this stays 0 unless a Hello or an
+    /// acknowledgement, which the link makes itself, fails.
     pub encode_failures: u64,
     /// Publishes the link refused.
     pub publish_failures: u64,
+    /// Peers that appeared while `max_peers` sessions were held and none could make room
+    /// (their messages are dropped as `unknown_peer`), and sessions evicted to make room.
+    pub peers_refused: u64,
+    pub peers_evicted: u64,
 }
 
 impl Node {
@@ -79,11 +86,18 @@ impl Node {
             pieces,
             encode_failures: 0,
             publish_failures: 0,
+            peers_refused: 0,
+            peers_evicted: 0,
         }
     }
 
     pub fn identity(&self) -> &Identity {
         &self.me
+    }
+
+    /// The protocol's tunables (and bounds) of every session.
+    pub fn config(&self) -> &ProtocolConfig {
+        &self.config
     }
 
     pub fn ledger(&self) -> &LedgerHandle {
@@ -109,11 +123,42 @@ impl Node {
             .map(|s| s.stats().meetings - 1)
     }
 
+    /// Room for a session with a new peer within `max_peers`: when full, the session of a
+    /// peer that is absent and never said Hello (a token that came and went, nothing of a
+    /// robot's state in it) is evicted; with none such the new peer is refused, so a flood
+    /// of made-up ids cannot push out the team's real robots.
+    fn make_room(&mut self, peer: &RobotId) -> bool {
+        if self.sessions.len() < self.config.max_peers {
+            return true;
+        }
+        let idle = self
+            .sessions
+            .iter()
+            .find(|(_, s)| !s.is_connected() && s.peer_robot().is_none())
+            .map(|(id, _)| id.clone());
+        match idle {
+            Some(id) => {
+                self.sessions.remove(&id);
+                self.peers_evicted += 1;
+                true
+            }
+            None => {
+                tracing::warn!(peer = %peer, max_peers = self.config.max_peers, "peer refused: max_peers sessions held");
+                self.peers_refused += 1;
+                self.ledger.lock().dropped(peer.as_str(), "max_peers", 0);
+                false
+            }
+        }
+    }
+
     /// Applies one link event at local time `now_ms`.
     pub fn handle(&mut self, event: LinkEvent, now_ms: u64) {
         match event {
             LinkEvent::PeerAppeared(peer) => {
                 if peer == self.me.id {
+                    return;
+                }
+                if !self.sessions.contains_key(&peer) && !self.make_room(&peer) {
                     return;
                 }
                 let session = self.sessions.entry(peer.clone()).or_insert_with(|| {
@@ -258,5 +303,85 @@ impl Node {
             self.handle(event, now_ms);
         }
         self.flush(link, now_ms);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ledger::Ledger;
+    use crate::standin::{NoBackend, SimPlaces, SimWorld, TruthVerifier};
+    use doorslam_ipc::wire::{Body, Header, Hello};
+
+    fn id(s: &str) -> RobotId {
+        RobotId::new(s).unwrap()
+    }
+
+    /// `max_peers` holds against a flood of made-up ids: new peers are refused (counted,
+    /// in the ledger) once full, an absent peer that never said Hello makes room, one that
+    /// did (a robot of the team, its state kept for the next meeting) never does.
+    #[test]
+    fn sessions_stay_within_max_peers_and_keep_the_robots_that_said_hello() {
+        let world = SimWorld::default();
+        let config = ProtocolConfig {
+            max_peers: 3,
+            ..ProtocolConfig::default()
+        };
+        let mut node = Node::new(
+            Identity {
+                id: id("a"),
+                robot: 0,
+                epoch: 1,
+            },
+            config,
+            LedgerHandle::new(Ledger::new("a", "test", 1, 752 * 480)),
+            Pieces {
+                place: Box::new(SimPlaces::new(world, 0, 8)),
+                verifier: Box::new(TruthVerifier::from_world(world)),
+                backend: Box::new(NoBackend::default()),
+            },
+        );
+        node.handle(LinkEvent::PeerAppeared(id("p1")), 0);
+        let hello = Message::new(
+            Header {
+                sender: id("p1"),
+                epoch: 1,
+                sequence: 0,
+            },
+            Body::Hello(Hello {
+                robot: 1,
+                heard: None,
+                base: 0,
+            }),
+        );
+        node.handle(
+            LinkEvent::Message {
+                from: id("p1"),
+                kind: Kind::Hello.name().into(),
+                bytes: hello.encode().unwrap(),
+            },
+            0,
+        );
+        assert_eq!(
+            node.session(&id("p1")).and_then(|s| s.peer_robot()),
+            Some(1)
+        );
+        node.handle(LinkEvent::PeerLeft(id("p1")), 0);
+        node.handle(LinkEvent::PeerAppeared(id("p2")), 0);
+        node.handle(LinkEvent::PeerAppeared(id("p3")), 0);
+        node.handle(LinkEvent::PeerAppeared(id("p4")), 0);
+        assert!(node.session(&id("p4")).is_none());
+        assert_eq!((node.peers_refused, node.peers_evicted), (1, 0));
+        node.handle(LinkEvent::PeerLeft(id("p2")), 0);
+        node.handle(LinkEvent::PeerAppeared(id("p5")), 0);
+        assert_eq!(node.peers_evicted, 1);
+        for i in 0..30 {
+            node.handle(LinkEvent::PeerAppeared(id(&format!("x{i}"))), 0);
+            assert!(node.sessions().count() <= 3);
+        }
+        let held: Vec<String> = node.sessions().map(|s| s.peer().to_string()).collect();
+        assert_eq!(held, ["p1", "p3", "p5"]);
+        assert_eq!(node.peers_refused, 31);
+        assert_eq!(node.ledger().lock().dropped_count("max_peers"), 31);
     }
 }

@@ -19,7 +19,7 @@
 //! the peer opened by a `Hello`. Back-end kinds travel under it like the rendezvous' own:
 //! the back-end hands bodies over and gets the peer's bodies, never an acknowledgement.
 
-use std::collections::{BTreeSet, HashMap, HashSet, VecDeque};
+use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::ops::Range;
 
 use doorslam_geometry::key;
@@ -29,7 +29,8 @@ use doorslam_ipc::wire::{
 };
 
 pub use crate::delivery::Outgoing;
-use crate::delivery::{Arrived, Delivery, DeliveryConfig, DeliveryStats};
+use crate::delivery::{Arrived, Delivery, DeliveryConfig, DeliveryStats, QueueError};
+use crate::seen::SeenWindow;
 
 /// This robot's own place descriptors, matching and verification packets: place
 /// recognition and the front-end's keyframes, behind one trait so the protocol runs with a
@@ -155,6 +156,18 @@ pub struct ProtocolConfig {
     /// α: verification packets of the peer kept for pairs still to come (oldest evicted
     /// first); β re-sends a packet beyond half of it.
     pub features_cache: usize,
+    /// Messages of one kind waiting to be sent at most; beyond, a new one is refused at
+    /// queueing ([`QueueError::Full`], counted).
+    pub outbox_limit: usize,
+    /// Ids kept by each set that prevents processing twice (β: descriptors delivered,
+    /// closures received; α: pairs verified): the newest this many, older ones count as
+    /// seen ([`SeenWindow`]).
+    pub seen_ids: usize,
+    /// α: putative pairs waiting for their verification packet at most (oldest dropped
+    /// first, counted in `matches_dropped`).
+    pub pending_matches: usize,
+    /// Peer sessions a node holds at most ([`crate::node::Node`]).
+    pub max_peers: usize,
 }
 
 impl ProtocolConfig {
@@ -163,6 +176,7 @@ impl ProtocolConfig {
             retransmit_ms: self.retransmit_ms,
             window: self.window,
             hold_back: self.receive_window,
+            outbox_limit: self.outbox_limit,
         }
     }
 }
@@ -176,6 +190,12 @@ impl Default for ProtocolConfig {
             window: 32,
             receive_window: 64,
             features_cache: 512,
+            outbox_limit: 1024,
+            seen_ids: 16384,
+            pending_matches: 4096,
+            // Every robot has a key letter: a team has at most this many, so a real peer
+            // always finds room.
+            max_peers: usize::from(key::MAX_ROBOTS),
         }
     }
 }
@@ -243,6 +263,23 @@ pub struct PeerStats {
     pub features_evicted: u64,
     /// α: putative pairs whose packet was evicted before it could verify them.
     pub matches_unverifiable: u64,
+    /// α: putative pairs waiting for their packet now, and dropped, oldest first, to stay
+    /// within `pending_matches`.
+    #[serde(default)]
+    pub matches_pending: u64,
+    #[serde(default)]
+    pub matches_dropped: u64,
+    /// Ids that left a seen-window and raised its floor (β: descriptors, closures; α: pairs
+    /// verified): below the floor an id counts as seen.
+    #[serde(default)]
+    pub seen_forgotten: u64,
+    /// Arrivals taken for repeats because they were at or below a seen-window's floor.
+    #[serde(default)]
+    pub seen_below_floor: u64,
+    /// Messages this robot made for the peer and did not queue, by reason
+    /// (`outbox_full`, `unencodable`, `too_large`).
+    #[serde(default)]
+    pub queue_refused: std::collections::BTreeMap<String, u64>,
     pub delivery: DeliveryStats,
 }
 
@@ -271,13 +308,13 @@ pub struct PeerSession {
     peer_features: HashMap<u64, VerificationFeatures>,
     features_order: VecDeque<u64>,
     evicted: VecDeque<u64>,
-    verified: HashSet<(u64, u64)>,
+    verified: SeenWindow<(u64, u64)>,
     // β
-    delivered: BTreeSet<u64>,
+    delivered: SeenWindow<u64>,
     /// The last `features_cache / 2` keyframes whose packet was sent: α still holds them
     /// (it evicts only beyond twice as many), so a pair naming one goes without it.
     features_sent: VecDeque<u64>,
-    closures_received: HashSet<(u64, u64)>,
+    closures_received: SeenWindow<(u64, u64)>,
     stats: PeerStats,
 }
 
@@ -308,10 +345,10 @@ impl PeerSession {
             peer_features: HashMap::new(),
             features_order: VecDeque::new(),
             evicted: VecDeque::new(),
-            verified: HashSet::new(),
-            delivered: BTreeSet::new(),
+            verified: SeenWindow::new(config.seen_ids),
+            delivered: SeenWindow::new(config.seen_ids),
             features_sent: VecDeque::new(),
-            closures_received: HashSet::new(),
+            closures_received: SeenWindow::new(config.seen_ids),
             stats: PeerStats::default(),
         }
     }
@@ -344,7 +381,13 @@ impl PeerSession {
 
     /// β: keys of every descriptor delivered from this peer.
     pub fn delivered_descriptors(&self) -> &BTreeSet<u64> {
-        &self.delivered
+        self.delivered.ids()
+    }
+
+    /// β: every descriptor key at or below this was delivered too (or counts as such):
+    /// [`Self::delivered_descriptors`] holds the newest `seen_ids` above it.
+    pub fn delivered_floor(&self) -> Option<u64> {
+        self.delivered.floor()
     }
 
     /// Sequences of `kind` sent and not yet acknowledged.
@@ -381,14 +424,37 @@ impl PeerSession {
         self.connected = false;
     }
 
-    fn queue(&mut self, body: Body) {
-        self.delivery.queue(body);
+    /// Queues one message for the peer. A refusal is this robot's (its pieces made more,
+    /// or larger, than the link carries): logged and counted by reason, never the peer's.
+    fn queue(&mut self, body: Body) -> Result<(), QueueError> {
+        let kind = body.kind();
+        let r = self.delivery.queue(body);
+        if let Err(e) = &r {
+            tracing::warn!(peer = %self.peer, kind = kind.name(), error = %e, "message to the peer not queued");
+            *self
+                .stats
+                .queue_refused
+                .entry(e.reason().to_string())
+                .or_default() += 1;
+        }
+        r
     }
 
     fn sync_stats(&mut self) {
         self.stats.retransmissions = self.delivery.retransmissions;
         self.stats.delivery = self.delivery.stats.clone();
         self.stats.features_held = self.peer_features.len() as u64;
+        self.stats.matches_pending = self.pending_matches.len() as u64;
+        let windows = [
+            (self.delivered.forgotten(), self.delivered.below_floor()),
+            (self.verified.forgotten(), self.verified.below_floor()),
+            (
+                self.closures_received.forgotten(),
+                self.closures_received.below_floor(),
+            ),
+        ];
+        self.stats.seen_forgotten = windows.iter().map(|w| w.0).sum();
+        self.stats.seen_below_floor = windows.iter().map(|w| w.1).sum();
     }
 
     /// Messages to send now: new protocol steps, acknowledgments, and resends of what is
@@ -402,8 +468,11 @@ impl PeerSession {
                 self.queue_descriptors(now_ms, svc);
             }
             for body in svc.backend.messages_for(&self.peer) {
-                self.stats.backend_sent += 1;
-                self.queue(body);
+                // Counted as sent once queued: a refused one the back-end is not told
+                // about (its trait has no way back); the counter by reason says it.
+                if self.queue(body).is_ok() {
+                    self.stats.backend_sent += 1;
+                }
             }
         }
         let out = self.delivery.poll(now_ms, self.peer_epoch);
@@ -432,12 +501,21 @@ impl PeerSession {
                 return;
             }
             self.last_batch_ms = Some(now_ms);
-            self.descriptors_queued_below = batch.keyframes.end;
-            self.queue(Body::Descriptors(Descriptors {
+            let end = batch.keyframes.end;
+            let body = Body::Descriptors(Descriptors {
                 robot: self.me.robot,
                 keyframes: batch.keyframes,
                 descriptors: batch.descriptors,
-            }));
+            });
+            // Refused (full, or the source made a batch the wire refuses): the range is
+            // not marked as sent, so a full outbox asks for it again next turn rather than
+            // skip it; a batch that never encodes is skipped, counted, or it would block
+            // every later keyframe.
+            match self.queue(body) {
+                Ok(()) => self.descriptors_queued_below = end,
+                Err(QueueError::Full { .. }) => return,
+                Err(_) => self.descriptors_queued_below = end,
+            }
         }
     }
 
@@ -492,10 +570,14 @@ impl PeerSession {
                 let arrived = self.delivery.arrive(header, body);
                 self.sync_stats();
                 match arrived {
-                    Arrived::Deliver(run) => Ok(run
-                        .into_iter()
-                        .filter_map(|(h, b)| self.process(&h, b, svc).err())
-                        .collect()),
+                    Arrived::Deliver(run) => {
+                        let refusals = run
+                            .into_iter()
+                            .filter_map(|(h, b)| self.process(&h, b, svc).err())
+                            .collect();
+                        self.sync_stats();
+                        Ok(refusals)
+                    }
                     Arrived::Held => Ok(Vec::new()),
                     Arrived::Duplicate { sequence } => Err(Refusal::Duplicate { kind, sequence }),
                     Arrived::BeyondHoldBack { sequence } => {
@@ -609,6 +691,17 @@ impl PeerSession {
                     .filter(|p| !self.verified.contains(&(p.query, p.candidate))),
             );
             self.try_verify(svc);
+            // What still waits for its packet, oldest first: β sends a pair's packet
+            // before the pair, so the pairs that waited longest are the ones least likely
+            // to be verified still.
+            let over = self
+                .pending_matches
+                .len()
+                .saturating_sub(self.config.pending_matches);
+            if over > 0 {
+                self.pending_matches.drain(..over);
+                self.stats.matches_dropped += over as u64;
+            }
             Ok(())
         } else if let Body::VerificationFeatures(v) = body {
             if self.role != Role::Initiator {
@@ -659,9 +752,14 @@ impl PeerSession {
         self.features_order.push_back(k);
         while self.peer_features.len() > self.config.features_cache {
             let waited: BTreeSet<u64> = self.pending_matches.iter().map(|m| m.candidate).collect();
-            let Some(at) = self.features_order.iter().position(|x| !waited.contains(x)) else {
-                break;
-            };
+            // The oldest no pair waits for; if every packet held is waited for (a peer
+            // sending pairs for packets it never sends), the oldest all the same: the
+            // cache's bound is hard, its pairs become unverifiable (counted).
+            let at = self
+                .features_order
+                .iter()
+                .position(|x| !waited.contains(x))
+                .unwrap_or(0);
             if let Some(old) = self.features_order.remove(at) {
                 self.peer_features.remove(&old);
                 self.stats.features_evicted += 1;
@@ -669,6 +767,8 @@ impl PeerSession {
                 if self.evicted.len() > 2 * self.config.features_cache {
                     self.evicted.pop_front();
                 }
+            } else {
+                break;
             }
         }
     }
@@ -684,11 +784,15 @@ impl PeerSession {
             if !self.features_sent.contains(&m.candidate) {
                 match svc.place.verification_features(m.candidate) {
                     Some(f) => {
+                        // Not queued (counted by `queue`): neither is its pair, which α
+                        // could never verify; the packet goes with the keyframe's next pair.
+                        if self.queue(Body::VerificationFeatures(f)).is_err() {
+                            continue;
+                        }
                         self.features_sent.push_back(m.candidate);
                         if self.features_sent.len() > self.config.features_cache / 2 {
                             self.features_sent.pop_front();
                         }
-                        self.queue(Body::VerificationFeatures(f));
                     }
                     None => continue,
                 }
@@ -696,7 +800,8 @@ impl PeerSession {
             sendable.push(m);
         }
         for chunk in sendable.chunks(MAX_MATCHES) {
-            self.queue(Body::Matches(Matches {
+            // A refusal is counted by `queue`; the pairs are lost to this meeting's α.
+            let _ = self.queue(Body::Matches(Matches {
                 matches: chunk.to_vec(),
             }));
         }
@@ -731,7 +836,9 @@ impl PeerSession {
         self.stats.closures_accepted += accepted.len() as u64;
         svc.backend.loop_closures(&self.peer, &accepted);
         for chunk in accepted.chunks(MAX_LOOP_CLOSURES) {
-            self.queue(Body::LoopClosures(LoopClosures {
+            // A refusal is counted by `queue`: the closures stay in this robot's back-end
+            // (given above) but do not reach β's.
+            let _ = self.queue(Body::LoopClosures(LoopClosures {
                 closures: chunk.to_vec(),
             }));
         }
@@ -748,5 +855,238 @@ mod tests {
         let b = RobotId::new("beta").unwrap();
         assert_eq!(Role::of(&a, &b), Role::Initiator);
         assert_eq!(Role::of(&b, &a), Role::Responder);
+    }
+
+    use doorslam_ipc::wire::{Descriptor, DESCRIPTOR_DIM};
+
+    /// Counts what it is asked; matches nothing, verifies nothing (no closure to send).
+    #[derive(Default)]
+    struct Counting {
+        matched: usize,
+        verified: Vec<(u64, u64)>,
+    }
+
+    impl DescriptorSource for Counting {
+        fn descriptors_since(&mut self, from: u64, _limit: usize) -> DescriptorBatch {
+            DescriptorBatch {
+                keyframes: from..from,
+                descriptors: Vec::new(),
+            }
+        }
+        fn match_descriptors(&mut self, _peer: &RobotId, received: &[Descriptor]) -> Vec<Match> {
+            self.matched += received.len();
+            Vec::new()
+        }
+        fn verification_features(&mut self, _key: u64) -> Option<VerificationFeatures> {
+            None
+        }
+    }
+
+    impl Verifier for Counting {
+        fn verify(
+            &mut self,
+            _peer: &RobotId,
+            m: &Match,
+            _features: &VerificationFeatures,
+        ) -> Option<LoopClosure> {
+            self.verified.push((m.query, m.candidate));
+            None
+        }
+    }
+
+    /// A session of `me` with `peer` whose Hello arrived (the peer's epoch 7), and the
+    /// peer's next sequence.
+    fn opened(me: (&str, u8), peer: (&str, u8), config: ProtocolConfig) -> (PeerSession, u64) {
+        let mut s = PeerSession::new(
+            Identity {
+                id: RobotId::new(me.0).unwrap(),
+                robot: me.1,
+                epoch: 1,
+            },
+            RobotId::new(peer.0).unwrap(),
+            config,
+        );
+        s.meeting_started();
+        let hello = Message::new(
+            header(peer.0, 0),
+            Body::Hello(Hello {
+                robot: peer.1,
+                heard: Some(1),
+                base: 0,
+            }),
+        );
+        run(&mut s, &mut Counting::default(), hello);
+        assert_eq!(s.peer_robot(), Some(peer.1));
+        (s, 0)
+    }
+
+    fn header(peer: &str, sequence: u64) -> Header {
+        Header {
+            sender: RobotId::new(peer).unwrap(),
+            epoch: 7,
+            sequence,
+        }
+    }
+
+    fn run(s: &mut PeerSession, c: &mut Counting, msg: Message) -> Vec<Refusal> {
+        let mut backend = crate::standin::NoBackend::default();
+        let mut place = Counting::default();
+        let mut svc = Services {
+            place: &mut place,
+            verifier: c,
+            backend: &mut backend,
+        };
+        let r = s.receive(msg, &mut svc).expect("taken");
+        c.matched += place.matched;
+        r
+    }
+
+    fn run_place(s: &mut PeerSession, c: &mut Counting, msg: Message) -> Vec<Refusal> {
+        let mut backend = crate::standin::NoBackend::default();
+        let mut verifier = Counting::default();
+        let mut svc = Services {
+            place: c,
+            verifier: &mut verifier,
+            backend: &mut backend,
+        };
+        s.receive(msg, &mut svc).expect("taken")
+    }
+
+    fn k(robot: u8, index: u64) -> u64 {
+        key::symbol(robot, index).unwrap()
+    }
+
+    /// A valid packet of robot b's keyframe `index`.
+    fn packet(index: u64) -> VerificationFeatures {
+        let mut places = crate::standin::SimPlaces::new(crate::standin::SimWorld::default(), 1, 8);
+        places
+            .created()
+            .store(index + 1, std::sync::atomic::Ordering::Release);
+        places.verification_features(k(1, index)).expect("a packet")
+    }
+
+    fn small() -> ProtocolConfig {
+        ProtocolConfig {
+            features_cache: 8,
+            seen_ids: 16,
+            pending_matches: 16,
+            ..ProtocolConfig::default()
+        }
+    }
+
+    /// α flooded with ten times `pending_matches` pairs whose packets never come: what
+    /// waits stays at the bound, the drops are counted, the newest pairs are the ones kept
+    /// (their packet arriving verifies them; the oldest's does not).
+    #[test]
+    fn pending_pairs_stay_within_their_bound_keeping_the_newest() {
+        let (mut s, _) = opened(("a", 0), ("b", 1), small());
+        let mut c = Counting::default();
+        for m in 0..10u64 {
+            let matches = (0..16)
+                .map(|i| Match {
+                    query: k(0, 16 * m + i),
+                    candidate: k(1, 16 * m + i),
+                    distance: 0.1,
+                })
+                .collect();
+            let refusals = run(
+                &mut s,
+                &mut c,
+                Message::new(header("b", m), Body::Matches(Matches { matches })),
+            );
+            assert!(refusals.is_empty(), "{refusals:?}");
+            assert!(s.stats().matches_pending <= 16);
+        }
+        assert_eq!(s.stats().matches_pending, 16);
+        assert_eq!(s.stats().matches_dropped, 144);
+        // Packets (sequences 0, 1 of their kind) for the newest and the oldest pair.
+        run(
+            &mut s,
+            &mut c,
+            Message::new(header("b", 0), Body::VerificationFeatures(packet(159))),
+        );
+        run(
+            &mut s,
+            &mut c,
+            Message::new(header("b", 1), Body::VerificationFeatures(packet(0))),
+        );
+        assert_eq!(c.verified, vec![(k(0, 159), k(1, 159))]);
+    }
+
+    /// α flooded with ten times `features_cache` packets: at most the bound held, the
+    /// evictions counted, the newest kept; a pair naming an evicted packet is counted as
+    /// unverifiable (never waits for good), one naming a kept packet is verified.
+    #[test]
+    fn the_features_cache_keeps_the_newest_packets_within_its_bound() {
+        let (mut s, _) = opened(("a", 0), ("b", 1), small());
+        let mut c = Counting::default();
+        for i in 0..80u64 {
+            run(
+                &mut s,
+                &mut c,
+                Message::new(header("b", i), Body::VerificationFeatures(packet(i))),
+            );
+            assert!(s.stats().features_held <= 8);
+        }
+        assert_eq!(s.stats().features_held, 8);
+        assert_eq!(s.stats().features_evicted, 72);
+        let pairs = [70u64, 79]
+            .iter()
+            .map(|&i| Match {
+                query: k(0, i),
+                candidate: k(1, i),
+                distance: 0.1,
+            })
+            .collect();
+        run(
+            &mut s,
+            &mut c,
+            Message::new(header("b", 0), Body::Matches(Matches { matches: pairs })),
+        );
+        assert_eq!(c.verified, vec![(k(0, 79), k(1, 79))]);
+        assert_eq!(s.stats().matches_unverifiable, 1);
+        assert_eq!(s.stats().matches_pending, 0);
+    }
+
+    /// β given ten times `seen_ids` descriptors: the delivered set stays at the bound (the
+    /// newest), every descriptor was matched once, and a resend of the oldest (below the
+    /// floor) counts as a redelivery, not matched again.
+    #[test]
+    fn delivered_descriptors_are_a_window_above_a_floor() {
+        let (mut s, _) = opened(("b", 1), ("a", 0), small());
+        let mut c = Counting::default();
+        let batch = |from: u64| {
+            Body::Descriptors(Descriptors {
+                robot: 0,
+                keyframes: from..from + 16,
+                descriptors: (from..from + 16)
+                    .map(|i| Descriptor {
+                        key: k(0, i),
+                        scale: 0.01,
+                        values: [1; DESCRIPTOR_DIM],
+                    })
+                    .collect(),
+            })
+        };
+        for m in 0..10u64 {
+            let refusals = run_place(&mut s, &mut c, Message::new(header("a", m), batch(16 * m)));
+            assert!(refusals.is_empty(), "{refusals:?}");
+            assert!(s.delivered_descriptors().len() <= 16);
+        }
+        assert_eq!(c.matched, 160);
+        assert_eq!(s.stats().descriptors_delivered, 160);
+        assert_eq!(
+            s.delivered_descriptors()
+                .iter()
+                .copied()
+                .collect::<Vec<_>>(),
+            (144..160).map(|i| k(0, i)).collect::<Vec<_>>()
+        );
+        assert_eq!(s.delivered_floor(), Some(k(0, 143)));
+        assert_eq!(s.stats().seen_forgotten, 144);
+        run_place(&mut s, &mut c, Message::new(header("a", 10), batch(0)));
+        assert_eq!(c.matched, 160, "nothing matched twice");
+        assert_eq!(s.stats().descriptors_redelivered, 16);
+        assert_eq!(s.stats().seen_below_floor, 16);
     }
 }

@@ -49,6 +49,25 @@ pub struct TeamSection {
     pub retransmit_ms: u64,
     #[serde(default = "default_write_every_ms")]
     pub write_every_ms: u64,
+    /// The bounds of the link's state per peer (README, "Bounds"): messages of one kind
+    /// in flight, held back for order by the receiver, and waiting to be sent.
+    #[serde(default = "default_window")]
+    pub window: usize,
+    #[serde(default = "default_receive_window")]
+    pub receive_window: u64,
+    #[serde(default = "default_outbox_limit")]
+    pub outbox_limit: usize,
+    /// α: the peer's verification packets kept; putative pairs waiting for one.
+    #[serde(default = "default_features_cache")]
+    pub features_cache: usize,
+    #[serde(default = "default_pending_matches")]
+    pub pending_matches: usize,
+    /// Ids kept by each set that prevents processing twice (older ones count as seen).
+    #[serde(default = "default_seen_ids")]
+    pub seen_ids: usize,
+    /// Peer sessions held at most (one per robot id heard).
+    #[serde(default = "default_max_peers")]
+    pub max_peers: usize,
     /// Size of one raw keyframe image (8-bit grayscale), the comparison of `doorslam bw`.
     #[serde(default = "default_width")]
     pub raw_image_width: u64,
@@ -117,6 +136,27 @@ fn default_retransmit_ms() -> u64 {
 fn default_write_every_ms() -> u64 {
     1000
 }
+fn default_window() -> usize {
+    ProtocolConfig::default().window
+}
+fn default_receive_window() -> u64 {
+    ProtocolConfig::default().receive_window
+}
+fn default_outbox_limit() -> usize {
+    ProtocolConfig::default().outbox_limit
+}
+fn default_features_cache() -> usize {
+    ProtocolConfig::default().features_cache
+}
+fn default_pending_matches() -> usize {
+    ProtocolConfig::default().pending_matches
+}
+fn default_seen_ids() -> usize {
+    ProtocolConfig::default().seen_ids
+}
+fn default_max_peers() -> usize {
+    ProtocolConfig::default().max_peers
+}
 fn default_width() -> u64 {
     752
 }
@@ -167,6 +207,13 @@ impl Default for TeamSection {
             run_dir: default_run_dir(),
             retransmit_ms: default_retransmit_ms(),
             write_every_ms: default_write_every_ms(),
+            window: default_window(),
+            receive_window: default_receive_window(),
+            outbox_limit: default_outbox_limit(),
+            features_cache: default_features_cache(),
+            pending_matches: default_pending_matches(),
+            seen_ids: default_seen_ids(),
+            max_peers: default_max_peers(),
             raw_image_width: default_width(),
             raw_image_height: default_height(),
             pieces: PiecesKind::default(),
@@ -198,6 +245,21 @@ pub enum RunError {
 }
 
 impl TeamSection {
+    /// The protocol's tunables from this section (the rest at their defaults).
+    pub fn protocol(&self) -> ProtocolConfig {
+        ProtocolConfig {
+            retransmit_ms: self.retransmit_ms,
+            window: self.window,
+            receive_window: self.receive_window,
+            outbox_limit: self.outbox_limit,
+            features_cache: self.features_cache,
+            pending_matches: self.pending_matches,
+            seen_ids: self.seen_ids,
+            max_peers: self.max_peers,
+            ..ProtocolConfig::default()
+        }
+    }
+
     pub fn validate(&self) -> Result<(), RunError> {
         let bad = |key, reason: &str| RunError::Config {
             key,
@@ -212,6 +274,25 @@ impl TeamSection {
                 "retransmit_ms",
                 "retransmit_ms and write_every_ms must be >= 1",
             ));
+        }
+        // Each bound at least 1 (0 would stall its kind or forget at once), and at most
+        // 2^20: a bound is there to cap memory, one larger is a typo.
+        let bounds: [(&'static str, u64); 7] = [
+            ("window", self.window as u64),
+            ("receive_window", self.receive_window),
+            ("outbox_limit", self.outbox_limit as u64),
+            ("features_cache", self.features_cache as u64),
+            ("pending_matches", self.pending_matches as u64),
+            ("seen_ids", self.seen_ids as u64),
+            ("max_peers", self.max_peers as u64),
+        ];
+        for (key, value) in bounds {
+            if !(1..=1 << 20).contains(&value) {
+                return Err(RunError::Config {
+                    key,
+                    reason: format!("{value}: must be 1 to 1048576"),
+                });
+            }
         }
         if self.standin.places == 0 {
             return Err(bad("standin.places", "must be >= 1"));
@@ -258,6 +339,46 @@ pub struct Status {
     #[serde(default)]
     pub pieces: serde_json::Value,
     pub finished: bool,
+    /// The bounds this link runs with (`[team]`), beside the counters of what reached
+    /// them (each peer's `stats`).
+    #[serde(default)]
+    pub bounds: Option<Bounds>,
+    /// Messages that failed to encode when sent, and publishes the link refused.
+    #[serde(default)]
+    pub encode_failures: u64,
+    #[serde(default)]
+    pub publish_failures: u64,
+    /// Peers refused (or sessions evicted) to stay within `max_peers`.
+    #[serde(default)]
+    pub peers_refused: u64,
+    #[serde(default)]
+    pub peers_evicted: u64,
+}
+
+/// `status.json`'s `bounds`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Bounds {
+    pub window: usize,
+    pub receive_window: u64,
+    pub outbox_limit: usize,
+    pub features_cache: usize,
+    pub pending_matches: usize,
+    pub seen_ids: usize,
+    pub max_peers: usize,
+}
+
+impl From<&ProtocolConfig> for Bounds {
+    fn from(c: &ProtocolConfig) -> Self {
+        Self {
+            window: c.window,
+            receive_window: c.receive_window,
+            outbox_limit: c.outbox_limit,
+            features_cache: c.features_cache,
+            pending_matches: c.pending_matches,
+            seen_ids: c.seen_ids,
+            max_peers: c.max_peers,
+        }
+    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -265,6 +386,10 @@ pub struct PeerStatus {
     pub stats: PeerStats,
     /// Indices of the peer's keyframes whose descriptors were delivered here.
     pub delivered_descriptors: Vec<u64>,
+    /// Every index of the peer at or below this was delivered too (the set above is the
+    /// newest `seen_ids`); absent while none was forgotten.
+    #[serde(default)]
+    pub delivered_floor: Option<u64>,
     pub unacknowledged_messages: usize,
 }
 
@@ -445,6 +570,7 @@ fn status_of(
                             .iter()
                             .map(|&k| doorslam_geometry::key::index(k))
                             .collect(),
+                        delivered_floor: s.delivered_floor().map(doorslam_geometry::key::index),
                         unacknowledged_messages: unacked,
                     },
                 )
@@ -458,6 +584,11 @@ fn status_of(
         backend: side.backend_status(),
         pieces: side.extra_status(),
         finished,
+        bounds: Some(Bounds::from(node.config())),
+        encode_failures: node.encode_failures,
+        publish_failures: node.publish_failures,
+        peers_refused: node.peers_refused,
+        peers_evicted: node.peers_evicted,
     }
 }
 
@@ -532,10 +663,7 @@ pub fn run_robot(
     } else {
         ledger
     });
-    let config = ProtocolConfig {
-        retransmit_ms: section.retransmit_ms,
-        ..ProtocolConfig::default()
-    };
+    let config = section.protocol();
     let new_node = |epoch: u64, side: &mut dyn RobotSide| {
         let me = Identity {
             id: id.clone(),
@@ -573,6 +701,11 @@ pub fn run_robot(
             backend: side.backend_status(),
             pieces: side.extra_status(),
             finished: true,
+            bounds: Some(Bounds::from(&config)),
+            encode_failures: 0,
+            publish_failures: 0,
+            peers_refused: 0,
+            peers_evicted: 0,
         });
     };
     side.epoch_started(epoch)?;
@@ -638,4 +771,37 @@ pub fn run_robot(
     link.close()?;
     tracing::info!(robot, "team: stopped");
     Ok(final_status)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The bounds are read from `[team]`, absent keys keep the protocol's defaults, and a
+    /// bound of 0 is refused naming its key.
+    #[test]
+    fn bounds_come_from_the_team_section() {
+        let section: TeamSection =
+            toml::from_str("features_cache = 64\nreceive_window = 8\nseen_ids = 100\n").unwrap();
+        let c = section.protocol();
+        assert_eq!(c.features_cache, 64);
+        assert_eq!(c.receive_window, 8);
+        assert_eq!(c.seen_ids, 100);
+        let d = ProtocolConfig::default();
+        assert_eq!(c.outbox_limit, d.outbox_limit);
+        assert_eq!(c.pending_matches, d.pending_matches);
+        assert_eq!(c.window, d.window);
+        assert_eq!(
+            TeamSection::default().protocol(),
+            ProtocolConfig {
+                retransmit_ms: 1000,
+                ..d
+            }
+        );
+        let zero: TeamSection = toml::from_str("outbox_limit = 0\n").unwrap();
+        match zero.validate() {
+            Err(RunError::Config { key, .. }) => assert_eq!(key, "outbox_limit"),
+            other => panic!("expected a config error, got {other:?}"),
+        }
+    }
 }
