@@ -42,6 +42,7 @@ fn config() -> ProtocolConfig {
         window: 4,
         receive_window: 64,
         features_cache: 512,
+        ..ProtocolConfig::default()
     }
 }
 
