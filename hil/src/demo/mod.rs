@@ -463,7 +463,11 @@ pub fn run(
 
     snap.phase = Phase::Reporting;
     progress(&snap);
-    report::write(config, &world, &log)
+    let summary = report::write(config, &world, &log)?;
+    // Every run also as ROS 2 messages, for ros2 bag / Foxglove (`<out>/run.mcap`).
+    crate::ros2_record::record(out, None)
+        .map_err(|e| DemoError::Report(format!("run.mcap: {e}")))?;
+    Ok(summary)
 }
 
 #[cfg(test)]
