@@ -243,54 +243,83 @@ fn path_ends(n: usize) -> Vec<usize> {
     ends
 }
 
-/// The MCAP writer with one channel per topic.
-struct Bag {
-    writer: mcap::Writer<BufWriter<File>>,
-    path: PathBuf,
-    schemas: BTreeMap<&'static str, u16>,
-    channels: BTreeMap<String, (u16, u32)>,
-    summary: RecordSummary,
+/// One encoded message of a run: when, on which topic, of which robot (whose node
+/// publishes it live), its type and its CDR payload.
+#[derive(Debug, Clone)]
+pub struct RosSample {
+    pub time_ns: i64,
+    pub topic: String,
+    pub robot: String,
+    pub ty: &'static TypeDef,
+    pub cdr: Vec<u8>,
 }
 
-impl Bag {
-    fn out_err(&self, e: impl std::fmt::Display) -> RecordError {
-        RecordError::Output {
-            path: self.path.clone(),
-            reason: e.to_string(),
-        }
-    }
+/// The messages of a run, in time order.
+#[derive(Debug, Clone, Default)]
+pub struct RunMessages {
+    pub robots: Vec<String>,
+    pub samples: Vec<RosSample>,
+}
 
-    fn write<M: RosMessage>(
+impl RunMessages {
+    fn push<M: RosMessage>(
         &mut self,
+        robot: &str,
         topic: &str,
         time_ns: i64,
         msg: &M,
     ) -> Result<(), RecordError> {
-        let ty: &'static TypeDef = M::TYPE;
-        let schema = match self.schemas.get(ty.name) {
+        self.samples.push(RosSample {
+            time_ns,
+            topic: topic.to_string(),
+            robot: robot.to_string(),
+            ty: M::TYPE,
+            cdr: msg.to_cdr()?,
+        });
+        Ok(())
+    }
+}
+
+fn write_mcap(messages: &RunMessages, out: &Path) -> Result<RecordSummary, RecordError> {
+    let out_err = |e: &dyn std::fmt::Display| RecordError::Output {
+        path: out.to_path_buf(),
+        reason: e.to_string(),
+    };
+    let file = File::create(out).map_err(|e| out_err(&e))?;
+    let mut writer = mcap::WriteOptions::new()
+        .compression(None)
+        .profile("ros2")
+        .create(BufWriter::new(file))
+        .map_err(|e| out_err(&e))?;
+    let mut schemas: BTreeMap<&'static str, u16> = BTreeMap::new();
+    let mut channels: BTreeMap<&str, (u16, u32)> = BTreeMap::new();
+    let mut summary = RecordSummary {
+        path: out.to_path_buf(),
+        robots: messages.robots.clone(),
+        ..Default::default()
+    };
+    for m in &messages.samples {
+        let schema = match schemas.get(m.ty.name) {
             Some(&id) => id,
             None => {
-                let id = self
-                    .writer
-                    .add_schema(ty.name, "ros2msg", ty.schema_text().as_bytes())
-                    .map_err(|e| self.out_err(e))?;
-                self.schemas.insert(ty.name, id);
+                let id = writer
+                    .add_schema(m.ty.name, "ros2msg", m.ty.schema_text().as_bytes())
+                    .map_err(|e| out_err(&e))?;
+                schemas.insert(m.ty.name, id);
                 id
             }
         };
-        let (channel, sequence) = match self.channels.get(topic) {
+        let (channel, sequence) = match channels.get(m.topic.as_str()) {
             Some(&c) => c,
             None => {
-                let id = self
-                    .writer
-                    .add_channel(schema, topic, "cdr", &BTreeMap::new())
-                    .map_err(|e| self.out_err(e))?;
+                let id = writer
+                    .add_channel(schema, &m.topic, "cdr", &BTreeMap::new())
+                    .map_err(|e| out_err(&e))?;
                 (id, 0)
             }
         };
-        let data = msg.to_cdr()?;
-        let t = u64::try_from(time_ns).unwrap_or(0);
-        self.writer
+        let t = u64::try_from(m.time_ns).unwrap_or(0);
+        writer
             .write_to_known_channel(
                 &mcap::records::MessageHeader {
                     channel_id: channel,
@@ -298,14 +327,16 @@ impl Bag {
                     log_time: t,
                     publish_time: t,
                 },
-                &data,
+                &m.cdr,
             )
-            .map_err(|e| self.out_err(e))?;
-        self.channels
-            .insert(topic.to_string(), (channel, sequence + 1));
-        *self.summary.messages.entry(topic.to_string()).or_default() += 1;
-        Ok(())
+            .map_err(|e| out_err(&e))?;
+        channels.insert(&m.topic, (channel, sequence + 1));
+        *summary.messages.entry(m.topic.clone()).or_default() += 1;
     }
+    writer.finish().map_err(|e| out_err(&e))?;
+    drop(writer);
+    summary.bytes = std::fs::metadata(out).map(|m| m.len()).unwrap_or(0);
+    Ok(summary)
 }
 
 /// The robot folders of a run: sub-folders with a `keyframes.csv`, by name.
@@ -454,32 +485,18 @@ fn bandwidth(robots: &[Robot], time_ns: i64) -> Result<Option<DiagnosticArray>, 
 /// Writes `out` (default `<run>/run.mcap`) from the run folder `run`.
 pub fn record(run: &Path, out: Option<&Path>) -> Result<RecordSummary, RecordError> {
     let out = out.map_or_else(|| run.join("run.mcap"), Path::to_path_buf);
+    write_mcap(&run_messages(run)?, &out)
+}
+
+/// Every message of the run folder `run` (what `run.mcap` holds), in time order.
+pub fn run_messages(run: &Path) -> Result<RunMessages, RecordError> {
     let robots: Vec<Robot> = robot_dirs(run)?
         .iter()
         .map(|(name, dir)| Robot::read(dir, name))
         .collect::<Result<_, _>>()?;
-    let file = File::create(&out).map_err(|e| RecordError::Output {
-        path: out.clone(),
-        reason: e.to_string(),
-    })?;
-    let writer = mcap::WriteOptions::new()
-        .compression(None)
-        .profile("ros2")
-        .create(BufWriter::new(file))
-        .map_err(|e| RecordError::Output {
-            path: out.clone(),
-            reason: e.to_string(),
-        })?;
-    let mut bag = Bag {
-        writer,
-        path: out.clone(),
-        schemas: BTreeMap::new(),
-        channels: BTreeMap::new(),
-        summary: RecordSummary {
-            path: out.clone(),
-            robots: robots.iter().map(|r| r.name.clone()).collect(),
-            ..Default::default()
-        },
+    let mut bag = RunMessages {
+        robots: robots.iter().map(|r| r.name.clone()).collect(),
+        samples: Vec::new(),
     };
 
     // Every robot's timeline, merged in time order (an MCAP reader wants no order, but a
@@ -507,14 +524,16 @@ pub fn record(run: &Path, out: Option<&Path>) -> Result<RecordSummary, RecordErr
         match ev {
             Event::Odometry(r, end) => {
                 let frame = format!("{}/odom", r.name);
-                bag.write(
+                bag.push(
+                    &r.name,
                     &format!("/{}/odometry_path", r.name),
                     *t,
                     &path_msg(&frame, &r.odometry[..*end]),
                 )?;
             }
             Event::Team(r, end) => {
-                bag.write(
+                bag.push(
+                    &r.name,
                     &format!("/{}/team_path", r.name),
                     *t,
                     &path_msg(TEAM_FRAME, &r.team[..*end]),
@@ -522,7 +541,8 @@ pub fn record(run: &Path, out: Option<&Path>) -> Result<RecordSummary, RecordErr
             }
             Event::Pose(r, i) => {
                 let p = &r.team[*i];
-                bag.write(
+                bag.push(
+                    &r.name,
                     &format!("/{}/pose", r.name),
                     *t,
                     &PoseStamped {
@@ -537,7 +557,8 @@ pub fn record(run: &Path, out: Option<&Path>) -> Result<RecordSummary, RecordErr
                 if let Some(o) = r.odometry.iter().find(|o| o.stamp_ns == p.stamp_ns) {
                     let t_team_odom = p.isometry() * o.isometry().inverse();
                     let (v, q) = (t_team_odom.translation.vector, t_team_odom.rotation);
-                    bag.write(
+                    bag.push(
+                        &r.name,
                         "/tf",
                         *t,
                         &TfMessage {
@@ -619,15 +640,13 @@ pub fn record(run: &Path, out: Option<&Path>) -> Result<RecordSummary, RecordErr
                 ),
             ],
         };
-        bag.write(&format!("/{}/loop_closures", r.name), end_ns, &msg)?;
+        bag.push(&r.name, &format!("/{}/loop_closures", r.name), end_ns, &msg)?;
     }
+    // The team's topic, published live by the first robot's node.
     if let Some(bw) = bandwidth(&robots, end_ns)? {
-        bag.write("/team/bandwidth", end_ns, &bw)?;
+        bag.push(&robots[0].name, "/team/bandwidth", end_ns, &bw)?;
     }
-    bag.writer.finish().map_err(|e| bag.out_err(e))?;
-    drop(bag.writer);
-    bag.summary.bytes = std::fs::metadata(&out).map(|m| m.len()).unwrap_or(0);
-    Ok(bag.summary)
+    Ok(bag)
 }
 
 #[cfg(test)]
