@@ -82,6 +82,42 @@ fn ros2_record_writes_run_mcap_and_names_a_bad_folder() {
 }
 
 #[test]
+fn up_records_the_state_folder_as_mcap_when_told() {
+    let dir = tempfile::tempdir().unwrap();
+    let state = dir.path().join("state");
+    let src = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/ros2/run");
+    for robot in ["a", "b"] {
+        std::fs::create_dir_all(state.join(robot)).unwrap();
+        for e in std::fs::read_dir(src.join(robot)).unwrap() {
+            let e = e.unwrap();
+            std::fs::copy(e.path(), state.join(robot).join(e.file_name())).unwrap();
+        }
+    }
+    let config = |mcap: &std::path::Path| {
+        let path = dir.path().join("robot.toml");
+        std::fs::write(
+            &path,
+            format!(
+                "[up]\nservices = []\n[backend]\nstate_dir = {:?}\n[record]\nmcap = {:?}\n",
+                state, mcap
+            ),
+        )
+        .unwrap();
+        path
+    };
+    let mcap = dir.path().join("up.mcap");
+    let out = doorslam(&["up", "--config", config(&mcap).to_str().unwrap()]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(stderr(&out).contains("recorded"), "{}", stderr(&out));
+    assert!(std::fs::metadata(&mcap).unwrap().len() > 0);
+    // A file that cannot be written fails `up`, naming the setting.
+    let bad = dir.path().join("no/such/dir/up.mcap");
+    let out = doorslam(&["up", "--config", config(&bad).to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(stderr(&out).contains("[record] mcap"), "{}", stderr(&out));
+}
+
+#[test]
 fn bw_names_a_missing_or_bad_ledger() {
     let out = doorslam(&["bw", "/nonexistent/run-dir"]);
     assert_eq!(out.status.code(), Some(1));
