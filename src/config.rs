@@ -30,6 +30,18 @@ pub struct RobotConfig {
     pub place: doorslam_place_recognition::service::PlaceSection,
     #[serde(default)]
     pub rendezvous: doorslam_rendezvous::RendezvousSection,
+    #[serde(default)]
+    pub record: RecordSection,
+}
+
+/// `[record]`: what `doorslam up` records when it stops.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RecordSection {
+    /// Write the robot's state folder (`[backend] state_dir`: `<state_dir>/<robot id>/`)
+    /// as ROS 2 messages in MCAP to this file when `up` stops (`doorslam ros2 record`).
+    #[serde(default)]
+    pub mcap: Option<PathBuf>,
 }
 
 /// `[sim_keyframes]`: the simulation stand-in for the front-end (never visual odometry).

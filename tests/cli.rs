@@ -15,9 +15,9 @@ fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
-const SUBCOMMANDS: [&str; 13] = [
+const SUBCOMMANDS: [&str; 14] = [
     "service", "up", "pgo", "pcm", "dpgo", "eval", "sim", "replay", "bw", "demo", "vo", "place",
-    "verify",
+    "verify", "ros2",
 ];
 
 #[test]
@@ -45,6 +45,76 @@ fn dpgo_names_bad_input() {
     let out = doorslam(&["dpgo", "x.g2o", "--join", "ab@3"]);
     assert_eq!(out.status.code(), Some(1));
     assert!(!stderr(&out).contains("panicked"), "{}", stderr(&out));
+}
+
+#[test]
+fn ros2_record_writes_run_mcap_and_names_a_bad_folder() {
+    let out = doorslam(&["ros2", "record", "/nonexistent/run-dir"]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        stderr(&out).contains("/nonexistent/run-dir"),
+        "{}",
+        stderr(&out)
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let src = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/ros2/run");
+    for robot in ["a", "b"] {
+        std::fs::create_dir(dir.path().join(robot)).unwrap();
+        for e in std::fs::read_dir(src.join(robot)).unwrap() {
+            let e = e.unwrap();
+            std::fs::copy(e.path(), dir.path().join(robot).join(e.file_name())).unwrap();
+        }
+    }
+    let mcap = dir.path().join("x.mcap");
+    let out = doorslam(&[
+        "ros2",
+        "record",
+        dir.path().to_str().unwrap(),
+        "--out",
+        mcap.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["robots"], serde_json::json!(["a", "b"]));
+    assert_eq!(v["messages"]["/a/pose"], 6);
+    assert_eq!(v["bytes"], std::fs::metadata(&mcap).unwrap().len());
+}
+
+#[test]
+fn up_records_the_state_folder_as_mcap_when_told() {
+    let dir = tempfile::tempdir().unwrap();
+    let state = dir.path().join("state");
+    let src = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/ros2/run");
+    for robot in ["a", "b"] {
+        std::fs::create_dir_all(state.join(robot)).unwrap();
+        for e in std::fs::read_dir(src.join(robot)).unwrap() {
+            let e = e.unwrap();
+            std::fs::copy(e.path(), state.join(robot).join(e.file_name())).unwrap();
+        }
+    }
+    let config = |mcap: &std::path::Path| {
+        let path = dir.path().join("robot.toml");
+        std::fs::write(
+            &path,
+            format!(
+                "[up]\nservices = []\n[backend]\nstate_dir = {:?}\n[record]\nmcap = {:?}\n",
+                state, mcap
+            ),
+        )
+        .unwrap();
+        path
+    };
+    let mcap = dir.path().join("up.mcap");
+    let out = doorslam(&["up", "--config", config(&mcap).to_str().unwrap()]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(stderr(&out).contains("recorded"), "{}", stderr(&out));
+    assert!(std::fs::metadata(&mcap).unwrap().len() > 0);
+    // A file that cannot be written fails `up`, naming the setting.
+    let bad = dir.path().join("no/such/dir/up.mcap");
+    let out = doorslam(&["up", "--config", config(&bad).to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(stderr(&out).contains("[record] mcap"), "{}", stderr(&out));
 }
 
 #[test]

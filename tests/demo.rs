@@ -73,10 +73,41 @@ fn demo(out: &Path, extra: &[&str]) -> Value {
         "trajectories.svg",
         "error.png",
         "bytes.svg",
+        "run.mcap",
     ] {
         assert!(
             out.join(file).is_file(),
             "{file} missing from the report folder"
+        );
+    }
+    // The run record, read by decoders that are not ours: every robot's last team path
+    // is its team_estimate.tum (when the set-up's venv has them).
+    let python = std::path::PathBuf::from(std::env::var("HOME").unwrap_or_default())
+        .join(".cache/doorslam/venv/bin/python");
+    let has = std::process::Command::new(&python)
+        .args(["-c", "import mcap, mcap_ros2"])
+        .status()
+        .is_ok_and(|s| s.success());
+    if has {
+        let check = std::process::Command::new(&python)
+            .arg(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/tests/ros2/check_mcap.py"
+            ))
+            .arg(out.join("run.mcap"))
+            .arg(out)
+            .output()
+            .unwrap();
+        assert!(
+            check.status.success(),
+            "run.mcap: {}{}",
+            String::from_utf8_lossy(&check.stdout),
+            String::from_utf8_lossy(&check.stderr)
+        );
+    } else {
+        println!(
+            "run.mcap not decoded: {} lacks mcap/mcap_ros2",
+            python.display()
         );
     }
     // Today's fields stay, the new ones are there.

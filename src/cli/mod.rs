@@ -9,6 +9,7 @@ mod pcm;
 mod pgo;
 mod place;
 mod replay;
+mod ros2;
 mod router;
 mod service;
 pub(crate) mod sim;
@@ -65,6 +66,8 @@ pub enum Command {
     Demo(demo::DemoArgs),
     /// Measure the on-robot transports (iceoryx2, Zenoh shared memory, Unix socket).
     Bench(bench::BenchArgs),
+    /// ROS 2 forms of a run: `record` writes a run folder as MCAP.
+    Ros2(ros2::Ros2Args),
 }
 
 /// Names of the on-robot services, as `doorslam service NAME` spells them.
@@ -97,6 +100,7 @@ pub fn main() -> ExitCode {
         Command::Router(args) => router::run(args),
         Command::Demo(args) => demo::run(args),
         Command::Bench(args) => bench::run(args),
+        Command::Ros2(args) => ros2::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

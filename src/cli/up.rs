@@ -227,6 +227,24 @@ pub fn run(args: UpArgs) -> Result<()> {
     }
     eprintln!("[up] stopping {} services", services.len());
     terminate(&mut services, grace);
+    // After the services stopped: their files are final, and the record never runs
+    // beside the team link.
+    if let Some(path) = &config.record.mcap {
+        let dir = &config.backend.state_dir;
+        match doorslam_hil::ros2_record::record(dir, Some(path)) {
+            Ok(s) => eprintln!(
+                "[up] recorded {} messages of {} into {}",
+                s.messages.values().sum::<u64>(),
+                dir.display(),
+                path.display()
+            ),
+            Err(e) => {
+                let e = format!("[record] mcap = {}: {e}", path.display());
+                eprintln!("[up] {e}");
+                failed.get_or_insert(e);
+            }
+        }
+    }
     match failed {
         Some(why) => bail!(why),
         None => Ok(()),

@@ -19,7 +19,8 @@
 //!    status is sampled for the progress lines and the bytes-over-time plot.
 //! 5. **Back at base**: after the flight every pair is put in range (the drones landed
 //!    together) until every robot's distributed back-end has converged (or `settle_s`).
-//! 6. **Report** ([`report`]): `report.md`, `summary.json`, plots as PNG and SVG.
+//! 6. **Report** ([`report`]): `report.md`, `summary.json`, plots as PNG and SVG; then the
+//!    run as ROS 2 messages, `run.mcap` ([`crate::ros2_record`]).
 //!
 //! Nothing here stands in for a service: if one is missing, its process fails, `up`
 //! gives up on it and the demo stops naming it.
@@ -527,7 +528,11 @@ pub fn run(
 
     snap.phase = Phase::Reporting;
     progress(&snap);
-    report::write(config, &world, &log)
+    let summary = report::write(config, &world, &log)?;
+    // Every run also as ROS 2 messages, for ros2 bag / Foxglove (`<out>/run.mcap`).
+    crate::ros2_record::record(out, None)
+        .map_err(|e| DemoError::Report(format!("run.mcap: {e}")))?;
+    Ok(summary)
 }
 
 #[cfg(test)]
