@@ -335,6 +335,8 @@ fn bad_demo_flags_are_named() {
     assert!(run(&["--frames", "100", "--duration-s", "10"]).contains("--duration-s"));
     assert!(run(&["--drop", "1.5"]).contains("drop = 1.5"));
     assert!(run(&["--speed-mps", "40"]).contains("speed_mps = 40"));
+    let twice = run(&["--kill", "b@10", "--kill", "b@20"]);
+    assert!(twice.contains("robot b is killed twice"), "{twice}");
     let missing = dir.path().join("no-world");
     let err = run(&["--world", missing.to_str().unwrap()]);
     assert!(err.contains("no-world"), "{err}");
