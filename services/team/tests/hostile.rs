@@ -10,80 +10,19 @@
 //! lost); nothing non-finite reaches a back-end; the process's memory stays flat while a
 //! million messages go by.
 
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::sync::atomic::Ordering;
 
 use doorslam_ipc::wire::{Body, Header, Kind, Message, RobotId};
-use doorslam_team::emulate::{Bus, EmulatedLink};
-use doorslam_team::ledger::{Direction, Ledger, LedgerFile, LedgerHandle};
-use doorslam_team::protocol::{Identity, ProtocolConfig};
-use doorslam_team::standin::{BackendLog, EchoBackend, SimPlaces, SimWorld, TruthVerifier};
-use doorslam_team::{Node, Pieces};
+use doorslam_team::emulate::Bus;
+use doorslam_team::ledger::{Direction, LedgerFile};
 
 const HOSTILE_MESSAGES: u64 = 1_000_000;
 /// Messages z injects between two steps of the honest robots.
 const BURST: u64 = 2_000;
 const KEYFRAMES: u64 = 40;
 
-struct Robot {
-    id: RobotId,
-    node: Node,
-    link: EmulatedLink,
-    created: Arc<AtomicU64>,
-    backend: Arc<Mutex<BackendLog>>,
-}
-
-fn config() -> ProtocolConfig {
-    ProtocolConfig {
-        retransmit_ms: 200,
-        descriptor_batch: 16,
-        batch_linger_ms: 100,
-        window: 4,
-        receive_window: 64,
-        features_cache: 512,
-        ..ProtocolConfig::default()
-    }
-}
-
-fn robot(bus: &Bus, id: &str, index: u8) -> Robot {
-    let world = SimWorld::default();
-    let id = RobotId::new(id).unwrap();
-    let place = SimPlaces::new(world, index, 20);
-    let created = place.created();
-    let backend = EchoBackend::new(index);
-    let log = backend.log.clone();
-    let node = Node::new(
-        Identity {
-            id: id.clone(),
-            robot: index,
-            epoch: 1,
-        },
-        config(),
-        LedgerHandle::new(Ledger::new(id.as_str(), "test", 1, 752 * 480)),
-        Pieces {
-            place: Box::new(place),
-            verifier: Box::new(TruthVerifier::from_world(world)),
-            backend: Box::new(backend),
-        },
-    );
-    Robot {
-        link: bus.link(&id),
-        id,
-        node,
-        created,
-        backend: log,
-    }
-}
-
-fn run(robots: &mut [&mut Robot], now: &mut u64, steps: usize) {
-    for _ in 0..steps {
-        for r in robots.iter_mut() {
-            r.node.step(&mut r.link, *now, Duration::ZERO);
-        }
-        *now += 10;
-    }
-}
+mod common;
+use common::{config, robot, run, Robot};
 
 /// `x` and `y` have met: nothing of either is unacknowledged by the other, and one of
 /// them has `n` of the other's descriptors (the protocol gives one of the pair the
@@ -117,6 +56,22 @@ fn accounted(ledger: &LedgerFile, peer: &str) -> (u64, u64) {
         .map(|d| d.messages)
         .sum();
     (received, dropped)
+}
+
+/// Loop closures with z each robot handed to its back-end.
+fn closures_of_z(robots: &[&Robot]) -> Vec<u64> {
+    robots
+        .iter()
+        .map(|r| {
+            r.backend
+                .lock()
+                .unwrap()
+                .closures
+                .get("z")
+                .copied()
+                .unwrap_or(0)
+        })
+        .collect()
 }
 
 /// Resident memory of this process, kB.
@@ -170,9 +125,9 @@ fn closures_with_pose_value(template: &Message, value: f32) -> Option<Vec<u8>> {
 #[test]
 fn a_hostile_teammate_cannot_crash_stall_or_flood_the_team() {
     let bus = Bus::new(0.0, 11);
-    let mut a = robot(&bus, "a", 0);
-    let mut b = robot(&bus, "b", 1);
-    let mut z = robot(&bus, "z", 2);
+    let mut a = robot(&bus, "a", 0, 0);
+    let mut b = robot(&bus, "b", 1, 0);
+    let mut z = robot(&bus, "z", 2, 0);
     let (ida, idb, idz) = (a.id.clone(), b.id.clone(), z.id.clone());
     let mut now = 0;
 
@@ -230,18 +185,7 @@ fn a_hostile_teammate_cannot_crash_stall_or_flood_the_team() {
         let nan = closures_with_pose_value(c, f32::NAN).expect("the pose's bytes are found");
         assert!(Message::decode(&nan).is_err(), "a NaN closure pose decoded");
     }
-    let closures_before: Vec<u64> = [&a, &b]
-        .iter()
-        .map(|r| {
-            r.backend
-                .lock()
-                .unwrap()
-                .closures
-                .get("z")
-                .copied()
-                .unwrap_or(0)
-        })
-        .collect();
+    let closures_before = closures_of_z(&[&a, &b]);
 
     // 2. z turns hostile (its node stops; its token stays), a and b fly on: new keyframes,
     //    a meeting of their own, under the attack.
@@ -396,18 +340,7 @@ fn a_hostile_teammate_cannot_crash_stall_or_flood_the_team() {
     }
     // Nothing forged got through to a back-end (a new, well-formed closure of z would, and
     // the back-end's PCM judges it: the rendezvous tests).
-    let closures_after: Vec<u64> = [&a, &b]
-        .iter()
-        .map(|r| {
-            r.backend
-                .lock()
-                .unwrap()
-                .closures
-                .get("z")
-                .copied()
-                .unwrap_or(0)
-        })
-        .collect();
+    let closures_after = closures_of_z(&[&a, &b]);
     println!("closures of z handed to the back-ends: before {closures_before:?}, after {closures_after:?}");
     // Every forged closure was undecodable (NaN), stale, or a copy of a sequence already
     // delivered (absurd values under an old sequence number): none is new to a back-end.

@@ -2,84 +2,16 @@
 //! `Link` trait as Zenoh): meetings cut mid-way and resumed, loss, misbehaving peers.
 
 use std::collections::BTreeSet;
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::sync::atomic::Ordering;
 
 use doorslam_geometry::key;
 use doorslam_ipc::wire::{Body, Header, Hello, Kind, Message, RobotId};
-use doorslam_team::emulate::{Bus, EmulatedLink};
-use doorslam_team::ledger::{Direction, Ledger, LedgerHandle};
-use doorslam_team::protocol::{Identity, ProtocolConfig};
-use doorslam_team::standin::{BackendLog, EchoBackend, SimPlaces, SimWorld, TruthVerifier};
-use doorslam_team::{Link, Node, Pieces};
+use doorslam_team::emulate::Bus;
+use doorslam_team::ledger::Direction;
+use doorslam_team::Link;
 
-struct Robot {
-    id: RobotId,
-    node: Node,
-    link: EmulatedLink,
-    created: Arc<AtomicU64>,
-    backend: Arc<Mutex<BackendLog>>,
-}
-
-fn config() -> ProtocolConfig {
-    ProtocolConfig {
-        retransmit_ms: 200,
-        descriptor_batch: 16,
-        batch_linger_ms: 100,
-        window: 4,
-        receive_window: 64,
-        features_cache: 512,
-        ..ProtocolConfig::default()
-    }
-}
-
-fn robot(bus: &Bus, id: &str, index: u8, keyframes: u64) -> Robot {
-    robot_in_epoch(bus, id, index, keyframes, 1)
-}
-
-fn robot_in_epoch(bus: &Bus, id: &str, index: u8, keyframes: u64, epoch: u64) -> Robot {
-    let world = SimWorld::default();
-    let id = RobotId::new(id).unwrap();
-    let place = SimPlaces::new(world, index, 20);
-    let created = place.created();
-    created.store(keyframes, Ordering::Release);
-    let backend = EchoBackend::new(index);
-    let log = backend.log.clone();
-    let me = Identity {
-        id: id.clone(),
-        robot: index,
-        epoch,
-    };
-    let ledger = LedgerHandle::new(Ledger::new(id.as_str(), "test", epoch, 752 * 480));
-    let node = Node::new(
-        me,
-        config(),
-        ledger,
-        Pieces {
-            place: Box::new(place),
-            verifier: Box::new(TruthVerifier::from_world(world)),
-            backend: Box::new(backend),
-        },
-    );
-    Robot {
-        link: bus.link(&id),
-        id,
-        node,
-        created,
-        backend: log,
-    }
-}
-
-/// Steps both robots `steps` times, 10 ms of local time each, from `*now`.
-fn run(robots: &mut [&mut Robot], now: &mut u64, steps: usize) {
-    for _ in 0..steps {
-        for r in robots.iter_mut() {
-            r.node.step(&mut r.link, *now, Duration::ZERO);
-        }
-        *now += 10;
-    }
-}
+mod common;
+use common::{robot, robot_in_epoch, run, Robot};
 
 fn step_until(
     robots: &mut [&mut Robot],
