@@ -140,11 +140,13 @@ pub struct AgentOptions {
     /// mean anything from milliseconds to seconds.
     pub resend_after: Duration,
     /// How long a robot that converged in a stage waits for present neighbours that have
-    /// not (yet) sent anything in its frame before it moves on without them; the condensed
-    /// method's solver waits twice this for the graphs of robots that route to it.
+    /// not (yet) sent anything in its frame before it moves on without them (time summed
+    /// over its converged steps); the condensed method's solver waits twice this for the
+    /// graphs of robots that route to it.
     pub patience: Duration,
-    /// Time after which a stage ends even if it has not converged (the next stage
-    /// starts from where it is; the refinement corrects it).
+    /// Time (summed over the stage's solved steps) after which a stage ends even if it
+    /// has not converged (the next stage starts from where it is; the refinement
+    /// corrects it).
     pub max_stage: Duration,
     /// Levenberg-Marquardt iterations per refinement step.
     pub refine_iterations: usize,
@@ -343,13 +345,16 @@ pub struct Agent {
     stage: Stage,
     /// Solved steps in the current stage (the `round` its messages carry).
     stage_steps: u64,
-    /// When (agent clock) the current stage began; `None` until the first step.
-    stage_started: Option<Duration>,
-    /// Since when the robot has been converged in the current stage, waiting for
-    /// neighbours.
-    waiting_since: Option<Duration>,
-    /// The time [`Self::step`] was last given (monotonic, caller's origin).
+    /// Time spent in the current stage's solved steps, and of them converged (waiting for
+    /// neighbours): each step adds the time since the previous step. (Time while the
+    /// robot could not solve — nothing in its frame yet — or had not converged is not
+    /// waiting: `patience` is time spent converged, `max_stage` time spent solving.)
+    stage_time: Duration,
+    waited: Duration,
+    /// The time [`Self::step`] was last given (monotonic, caller's origin), and the time
+    /// since the step before it (the first step: since the clock's origin).
     now: Duration,
+    step_time: Duration,
     stage_converged: bool,
     anchored: bool,
     anchor: u8,
@@ -393,9 +398,10 @@ impl Agent {
             neighbors: BTreeMap::new(),
             stage: Stage::Rotation,
             stage_steps: 0,
-            stage_started: None,
-            waiting_since: None,
+            stage_time: Duration::ZERO,
+            waited: Duration::ZERO,
             now: Duration::ZERO,
+            step_time: Duration::ZERO,
             stage_converged: false,
             anchored: false,
             anchor: robot,
@@ -694,8 +700,8 @@ impl Agent {
         self.generation += 1;
         self.stage = Stage::Rotation;
         self.stage_steps = 0;
-        self.stage_started = Some(self.now);
-        self.waiting_since = None;
+        self.stage_time = Duration::ZERO;
+        self.waited = Duration::ZERO;
         self.stage_converged = false;
         self.poses.clone_from(&self.initial);
         self.relaxed = self
@@ -795,8 +801,8 @@ impl Agent {
     /// [`AgentOptions`] is measured on it. Returns whether anything was solved.
     pub fn step(&mut self, now: Duration) -> Result<bool, DpgoError> {
         // A clock that went back (the caller's bug) must not make timeouts negative.
+        self.step_time = now.saturating_sub(self.now);
         self.now = self.now.max(now);
-        self.stage_started.get_or_insert(self.now);
         if self.options.method == Method::Condensed {
             return self.step_condensed();
         }
@@ -818,6 +824,7 @@ impl Agent {
         self.estimate_version += 1;
         self.anchored = true;
         self.stage_steps += 1;
+        self.stage_time += self.step_time;
         let threshold = match self.stage {
             Stage::Rotation => self.options.rotation_change,
             Stage::Pose => self.options.pose_change,
@@ -854,10 +861,7 @@ impl Agent {
         if self.stage == Stage::Refine {
             return;
         }
-        let in_stage = self
-            .now
-            .saturating_sub(self.stage_started.unwrap_or(self.now));
-        let forced = in_stage >= self.options.max_stage;
+        let forced = self.stage_time >= self.options.max_stage;
         if !self.stage_converged && !forced {
             return;
         }
@@ -868,10 +872,8 @@ impl Agent {
                         && (s.stage > self.stage || (s.stage == self.stage && s.converged))
                 })
         });
-        let waited = self
-            .now
-            .saturating_sub(*self.waiting_since.get_or_insert(self.now));
-        if neighbours_done || forced || waited >= self.options.patience {
+        self.waited += self.step_time;
+        if neighbours_done || forced || self.waited > self.options.patience {
             tracing::debug!(
                 robot = self.robot,
                 stage = ?self.stage,
@@ -886,8 +888,8 @@ impl Agent {
                 _ => Stage::Refine,
             };
             self.stage_steps = 0;
-            self.stage_started = Some(self.now);
-            self.waiting_since = None;
+            self.stage_time = Duration::ZERO;
+            self.waited = Duration::ZERO;
             self.stage_converged = false;
             self.last_change = f64::INFINITY;
             self.reset_momentum();

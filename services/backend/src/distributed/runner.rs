@@ -596,9 +596,11 @@ pub fn run_over(
             let Some(agent) = agents.get_mut(&r) else {
                 continue;
             };
+            // Round r ends r + 1 rounds after the start (an agent's first step then
+            // counts one round, as when the timeouts were counted in steps).
             let now = options
                 .round
-                .saturating_mul(u32::try_from(round).unwrap_or(u32::MAX));
+                .saturating_mul(u32::try_from(round + 1).unwrap_or(u32::MAX));
             agent.step(now)?;
             let neighbors: Vec<u8> = agent.neighbors().collect();
             for n in neighbors {
