@@ -261,6 +261,39 @@ fn example_robot_config_is_valid() {
     parsed.validate().unwrap();
 }
 
+#[test]
+fn backend_timeouts_are_seconds_and_the_step_keys_are_refused_by_name() {
+    let parse = |body: &str| -> Result<doorslam::config::RobotConfig, String> {
+        let c: doorslam::config::RobotConfig = toml::from_str(body).map_err(|e| e.to_string())?;
+        c.validate().map_err(|e| format!("{e:#}"))?;
+        Ok(c)
+    };
+    let c =
+        parse("[backend]\nresend_after_s = 3.5\npatience_s = 8.0\nmax_stage_s = 90.0\n").unwrap();
+    let agent = c.backend.for_robot("a", 0).distributed.unwrap();
+    assert_eq!(agent.resend_after, std::time::Duration::from_millis(3500));
+    assert_eq!(agent.patience, std::time::Duration::from_secs(8));
+    assert_eq!(agent.max_stage, std::time::Duration::from_secs(90));
+    for (old, new) in [
+        ("resend_after = 4", "resend_after_s"),
+        ("patience = 10", "patience_s"),
+        ("max_stage_steps = 200", "max_stage_s"),
+    ] {
+        let err = parse(&format!("[backend]\n{old}\n")).unwrap_err();
+        let key = old.split(' ').next().unwrap();
+        assert!(err.contains(key) && err.contains(new), "{old}: {err}");
+    }
+    for bad in [
+        "patience_s = 0.0",
+        "resend_after_s = -1.0",
+        "max_stage_s = nan",
+    ] {
+        let err = parse(&format!("[backend]\n{bad}\n")).unwrap_err();
+        let key = bad.split(' ').next().unwrap();
+        assert!(err.contains(key), "{bad}: {err}");
+    }
+}
+
 fn data(rel: &str) -> String {
     format!("{}/../shared/data/{rel}", ".")
 }

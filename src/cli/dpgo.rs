@@ -3,6 +3,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
+use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -268,6 +269,8 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         MethodArg::Dgs => Method::Dgs,
         MethodArg::Condensed => Method::Condensed,
     };
+    // Validated above to 1 ms .. 1 h, so the cast neither truncates nor saturates.
+    let round_ms = (args.round_s * 1000.0).round() as u64;
     let mut options = RunOptions {
         agent,
         drop: args.drop,
@@ -277,6 +280,8 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         outage: parse_outage(&args.outage)?,
         team_map: parse_at("--team-map", &args.team_map)?,
         stream: args.stream,
+        // The agents' clock and the team link's advance together, a round at a time.
+        round: Duration::from_millis(round_ms),
     };
     let names = args
         .files
@@ -293,7 +298,7 @@ pub fn run(args: DpgoArgs) -> Result<()> {
                 duplicate: args.duplicate,
                 seed: args.seed,
             },
-            round_ms: (args.round_s * 1000.0).round() as u64,
+            round_ms,
             protocol: ProtocolConfig {
                 retransmit_ms: (args.retransmit_s * 1000.0).round() as u64,
                 ..ProtocolConfig::default()

@@ -7,6 +7,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
+use std::time::Duration;
 
 use doorslam_backend::distributed::runner::{run, RunOptions, RunReport};
 use doorslam_backend::distributed::{Agent, AgentOptions, DpgoError, Method};
@@ -89,6 +90,25 @@ fn four_robots_reach_the_centralized_optimum() {
     let dgs = run(&g, &options(Method::Dgs)).unwrap();
     assert_near_optimum("dgs", &dgs, 0.01);
     assert!(dgs.iterations > condensed.iterations && dgs.bytes > condensed.bytes);
+}
+
+#[test]
+fn a_solver_stopped_by_its_iteration_limit_is_not_converged() {
+    let g = team("example_4robots", 4);
+    let mut opts = options(Method::Condensed);
+    opts.agent.solver = doorslam_backend::SolverOptions {
+        max_iterations: 1,
+        ..doorslam_backend::SolverOptions::default()
+    };
+    let r = run(&g, &opts).unwrap();
+    // Nothing is in flight at the end (the team settled), yet the solve it settled on was
+    // cut short: not converged, and the report says why.
+    assert!(r.settled, "{r:?}");
+    assert!(!r.converged, "{r:?}");
+    assert_eq!(r.stop_reason, "max_iterations", "{r:?}");
+    let full = run(&g, &options(Method::Condensed)).unwrap();
+    assert!(full.converged, "{full:?}");
+    assert!(full.stop_reason.starts_with("converged_"), "{full:?}");
 }
 
 #[test]
@@ -183,6 +203,54 @@ fn pair_with(opts: AgentOptions) -> (Agent, Agent) {
     (a, b)
 }
 
+/// One step of `agent` on a clock of 0.1 s per step (the runner's default round), so the
+/// timeouts mean the rounds they meant when they were counted in steps.
+fn tick(agent: &mut Agent) -> bool {
+    let steps = u32::try_from(agent.stats().steps + 1).unwrap();
+    agent.step(Duration::from_millis(100) * steps).unwrap()
+}
+
+/// How long robot a's first message to b, which never answers, stays unacknowledged
+/// before a resends, when a steps every `period` (agent clock).
+fn first_resend_after(method: Method, period: Duration) -> Duration {
+    let (mut a, _b) = pair_with(AgentOptions {
+        method,
+        resend_after: Duration::from_millis(400),
+        ..AgentOptions::default()
+    });
+    let mut now = Duration::ZERO;
+    let mut first_sent = None;
+    for _ in 0..10_000 {
+        now += period;
+        a.step(now).unwrap();
+        let out = a.messages_for(1).unwrap();
+        if a.stats().resent > 0 {
+            return now - first_sent.expect("a resend of nothing sent");
+        }
+        if first_sent.is_none() && !out.is_empty() {
+            first_sent = Some(now);
+        }
+    }
+    panic!("{method:?}: no resend in 10 000 steps of {period:?}");
+}
+
+#[test]
+fn resends_wait_the_same_seconds_whatever_the_step_rate() {
+    // A robot's back-end steps when there is work, not at a fixed rate: the timeout must
+    // be the same 0.4 s when it steps 10x faster (counted in steps, it was 4 steps: 40 ms
+    // at 10 ms a step).
+    let after = Duration::from_millis(400);
+    for method in [Method::Condensed, Method::Dgs] {
+        for period in [Duration::from_millis(100), Duration::from_millis(10)] {
+            let waited = first_resend_after(method, period);
+            assert!(
+                waited >= after && waited < after + period,
+                "{method:?} stepping every {period:?}: resent after {waited:?}, not {after:?}"
+            );
+        }
+    }
+}
+
 /// `rounds` of: b's messages to a, a's to b, then both step (no loss).
 fn deliver_then_step(a: &mut Agent, b: &mut Agent, rounds: usize) {
     for _ in 0..rounds {
@@ -192,19 +260,19 @@ fn deliver_then_step(a: &mut Agent, b: &mut Agent, rounds: usize) {
         for m in a.messages_for(1).unwrap() {
             b.receive(0, &m).unwrap();
         }
-        a.step().unwrap();
-        b.step().unwrap();
+        tick(a);
+        tick(b);
     }
 }
 
 /// `rounds` of: a steps and sends to b, b steps and sends to a (no loss).
 fn exchange(a: &mut Agent, b: &mut Agent, rounds: usize) {
     for _ in 0..rounds {
-        a.step().unwrap();
+        tick(a);
         for m in a.messages_for(1).unwrap() {
             b.receive(0, &m).unwrap();
         }
-        b.step().unwrap();
+        tick(b);
         for m in b.messages_for(0).unwrap() {
             a.receive(1, &m).unwrap();
         }
@@ -272,7 +340,7 @@ fn malformed_stale_and_out_of_order_messages_change_nothing() {
         }),
     );
     assert!(a.receive(1, &hello).is_err());
-    a.step().unwrap();
+    tick(&mut a);
     let after = estimates(&a);
     for ((k0, x0), (k1, x1)) in before.iter().zip(&after) {
         assert_eq!(k0, k1);
@@ -320,14 +388,14 @@ fn poses_out_of_order_or_twice_and_foreign_edges_are_refused_by_name() {
 fn a_malformed_condensed_graph_is_refused() {
     let (mut a, mut b) = pair(Method::Condensed);
     // a solves the team (the lowest robot): once b has a's route, b sends a its graph.
-    a.step().unwrap();
+    tick(&mut a);
     for m in a.messages_for(1).unwrap() {
         b.receive(0, &m).unwrap();
     }
     // b sends its graph once its route held for a step.
     let mut graph = None;
     for _ in 0..4 {
-        b.step().unwrap();
+        tick(&mut b);
         let out = b.messages_for(0).unwrap();
         if let Some(g) = out
             .iter()
@@ -339,7 +407,7 @@ fn a_malformed_condensed_graph_is_refused() {
         for m in out {
             a.receive(1, &m).unwrap();
         }
-        a.step().unwrap();
+        tick(&mut a);
         for m in a.messages_for(1).unwrap() {
             b.receive(0, &m).unwrap();
         }
@@ -427,7 +495,7 @@ fn play_round(agents: &mut BTreeMap<u8, Agent>, away: Option<u8>) -> u64 {
     }
     let mut bytes = 0;
     for &r in &robots {
-        agents.get_mut(&r).unwrap().step().unwrap();
+        tick(agents.get_mut(&r).unwrap());
         let neighbors: Vec<u8> = agents[&r].neighbors().collect();
         for n in neighbors {
             if away == Some(r) || away == Some(n) {
@@ -698,7 +766,7 @@ fn a_route_that_lies_and_an_update_of_an_unknown_version_are_not_taken() {
         }),
     );
     assert!(!a.receive(1, &update).unwrap());
-    a.step().unwrap();
+    tick(&mut a);
     assert!(a.messages_for(1).unwrap().iter().all(
         |m| !matches!(&m.body, Body::Ack(x) if x.kind == doorslam_ipc::wire::Kind::SeparatorGraph)
     ));
@@ -717,7 +785,7 @@ fn a_robot_whose_solver_leaves_keeps_the_solution_it_got() {
     let before = estimates(&b);
     b.set_present(0, false);
     for _ in 0..4 {
-        b.step().unwrap();
+        tick(&mut b);
     }
     assert!(b.solves_team(), "b takes over when a leaves");
     assert_eq!(b.anchor(), 0, "b keeps a's frame");

@@ -8,7 +8,8 @@
 use std::collections::BTreeMap;
 
 use doorslam_backend::distributed::AgentOptions;
-use doorslam_backend::service::TeamBridge;
+use doorslam_backend::service::output::Outputs;
+use doorslam_backend::service::{BackendState, TeamBridge};
 use doorslam_geometry::{key, TangentMatrix, SE3};
 use doorslam_ipc::wire::{Header, Message, RobotId};
 use doorslam_ipc::EnvelopeEvent;
@@ -40,8 +41,12 @@ struct Robot {
 
 impl Robot {
     fn new(r: u8, backend_epoch: u64, team_epoch: u64) -> Self {
+        Self::with_options(r, backend_epoch, team_epoch, AgentOptions::default())
+    }
+
+    fn with_options(r: u8, backend_epoch: u64, team_epoch: u64, options: AgentOptions) -> Self {
         let id = RobotId::new(&format!("robot{r}")).unwrap();
-        let mut bridge = TeamBridge::new(r, id, backend_epoch, AgentOptions::default());
+        let mut bridge = TeamBridge::new(r, id, backend_epoch, options);
         // Its odometry, starting at the identity in its own frame (it does not know where
         // it is relative to the other robot).
         let origin = truth(r, 0).inverse();
@@ -152,6 +157,52 @@ fn two_robots() -> (Robot, Robot) {
     a.add_true_closures();
     b.add_true_closures();
     (a, b)
+}
+
+/// backend.json's `team` of robot a (the team's solver) once the pair settled, its solver
+/// limited to `max_iterations`.
+fn team_status(max_iterations: usize) -> serde_json::Value {
+    let options = AgentOptions {
+        solver: doorslam_backend::SolverOptions {
+            max_iterations,
+            ..doorslam_backend::SolverOptions::default()
+        },
+        ..AgentOptions::default()
+    };
+    let mut a = Robot::with_options(0, 1, 1, options.clone());
+    let mut b = Robot::with_options(1, 1, 1, options);
+    // Closures that disagree (decimetres apart): the optimum has a cost, so a solve is not
+    // over in one iteration by reaching zero.
+    for (n, (i, j)) in [(3, 2), (6, 6), (9, 10)].into_iter().enumerate() {
+        let (ka, kb) = (key::symbol(0, i).unwrap(), key::symbol(1, j).unwrap());
+        let off = 0.3 * n as f64;
+        let z = truth(0, i).inverse() * truth(1, j) * SE3::translation(off, -off, 0.5 * off);
+        for r in [&mut a, &mut b] {
+            r.bridge.add_closure(ka, kb, z, information()).unwrap();
+        }
+    }
+    a.announce(&b);
+    b.announce(&a);
+    assert!(settle(&mut a, &mut b) < 50, "no settling in 50 rounds");
+    assert!(a.bridge.agent().solves_team());
+    let state = BackendState::new(0, 10).unwrap().with_team(a.bridge);
+    serde_json::to_value(Outputs::status(&state)).unwrap()["team"].clone()
+}
+
+#[test]
+fn the_status_says_why_the_solver_stopped_and_a_cut_solve_is_not_converged() {
+    let cut = team_status(1);
+    assert_eq!(cut["settled"], true, "{cut}");
+    assert_eq!(cut["converged"], false, "{cut}");
+    assert_eq!(cut["stop_reason"], "max_iterations", "{cut}");
+    let full = team_status(100);
+    assert_eq!(full["converged"], true, "{full}");
+    assert!(
+        full["stop_reason"]
+            .as_str()
+            .is_some_and(|r| r.starts_with("converged_")),
+        "{full}"
+    );
 }
 
 #[test]

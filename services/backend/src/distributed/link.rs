@@ -4,6 +4,7 @@
 //! sequence, never by clocks.
 
 use std::collections::{BTreeMap, BTreeSet};
+use std::time::Duration;
 
 use doorslam_ipc::wire::{Ack, Body, Header, Kind, Message, RobotId, MAX_ACK_RANGES};
 
@@ -82,12 +83,12 @@ impl Received {
     }
 }
 
-/// Messages of one kind sent to one neighbour and not yet acknowledged: sequence → (step
-/// sent, what it carried).
+/// Messages of one kind sent to one neighbour and not yet acknowledged: sequence → (time
+/// sent, on the agent's monotonic clock, what it carried).
 #[derive(Debug)]
 pub(crate) struct Outbox<T> {
     next: u64,
-    in_flight: BTreeMap<u64, (u64, T)>,
+    in_flight: BTreeMap<u64, (Duration, T)>,
 }
 
 impl<T> Default for Outbox<T> {
@@ -110,10 +111,10 @@ pub(crate) struct Settled<T> {
 
 impl<T> Outbox<T> {
     /// Records a message about to be sent; its sequence number.
-    pub fn send(&mut self, step: u64, item: T) -> u64 {
+    pub fn send(&mut self, now: Duration, item: T) -> u64 {
         let s = self.next;
         self.next += 1;
-        self.in_flight.insert(s, (step, item));
+        self.in_flight.insert(s, (now, item));
         s
     }
 
@@ -168,12 +169,13 @@ impl<T> Outbox<T> {
         settled
     }
 
-    /// Messages unacknowledged for `after` steps: taken as lost.
-    pub fn expire(&mut self, step: u64, after: u64) -> Vec<T> {
+    /// Messages unacknowledged for `after` (time, not steps: a step's length varies):
+    /// taken as lost.
+    pub fn expire(&mut self, now: Duration, after: Duration) -> Vec<T> {
         let old: Vec<u64> = self
             .in_flight
             .iter()
-            .filter(|(_, (sent, _))| step.saturating_sub(*sent) >= after)
+            .filter(|(_, (sent, _))| now.saturating_sub(*sent) >= after)
             .map(|(&s, _)| s)
             .collect();
         old.into_iter()
@@ -236,16 +238,17 @@ mod tests {
     fn outbox_settles_acknowledged_and_overtaken_messages() {
         let mut o = Outbox::default();
         for i in 0..4 {
-            assert_eq!(o.send(0, i), i);
+            assert_eq!(o.send(Duration::ZERO, i), i);
         }
         // 0 and 2 arrived, 1 did not (overtaken: lost), 3 is still in flight.
         let s = o.acknowledge(&ack(1, vec![2..3]));
         assert_eq!((s.delivered, s.lost), (vec![0, 2], vec![1]));
         assert_eq!(o.items().copied().collect::<Vec<_>>(), vec![3]);
-        assert_eq!(o.expire(3, 4), Vec::<u64>::new());
-        assert_eq!(o.expire(4, 4), vec![3]);
+        let ms = Duration::from_millis;
+        assert_eq!(o.expire(ms(399), ms(400)), Vec::<u64>::new());
+        assert_eq!(o.expire(ms(400), ms(400)), vec![3]);
         assert!(o.is_empty());
-        assert_eq!(o.send(5, 9), 4);
+        assert_eq!(o.send(ms(500), 9), 4);
     }
 
     #[test]

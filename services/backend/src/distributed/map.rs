@@ -94,7 +94,7 @@ impl Agent {
     }
 
     pub(crate) fn map_messages_for(&mut self, neighbor: u8) -> Result<Vec<Message>, DpgoError> {
-        let step = self.stats.steps;
+        let now = self.now;
         let resend_after = self.options.resend_after;
         // A partial copy is asked for again in full.
         let known = self
@@ -123,7 +123,7 @@ impl Agent {
             n.ack_sequence += 1;
             out.push(ack);
         }
-        for lost in n.map.out.expire(step, resend_after) {
+        for lost in n.map.out.expire(now, resend_after) {
             self.stats.resent += 1;
             match lost {
                 Sent::Request => n.map.want = true,
@@ -133,7 +133,7 @@ impl Agent {
         }
         let request_flying = n.map.out.items().any(|s| matches!(s, Sent::Request));
         if n.map.want && !request_flying {
-            let s = n.map.out.send(step, Sent::Request);
+            let s = n.map.out.send(now, Sent::Request);
             out.push(Message::new(
                 header(s),
                 Body::TeamMap(TeamMap::Request { known }),
@@ -142,7 +142,7 @@ impl Agent {
         if let Some(chunks) = reply {
             n.map.asked = None;
             for t in chunks {
-                let s = n.map.out.send(step, Sent::Reply);
+                let s = n.map.out.send(now, Sent::Reply);
                 out.push(Message::new(
                     header(s),
                     Body::TeamMap(TeamMap::Trajectory(t)),

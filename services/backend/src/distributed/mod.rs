@@ -41,7 +41,7 @@
 //! whose estimate moved by more than `send_rotation` / `send_pose` from what the
 //! neighbour is known to hold. Each message is acknowledged (`Ack` of kind
 //! `PoseEstimates`); a message not acknowledged when a later one was, or after
-//! `resend_after` steps, is taken as lost and its values become due again. So a dropped
+//! `resend_after` (seconds), is taken as lost and its values become due again. So a dropped
 //! message costs a resend, never a stale neighbour estimate forever; a robot out of range
 //! keeps the last estimates it received and resumes when it returns. Stale (older
 //! sequence or generation), out-of-order and malformed messages are ignored or refused
@@ -58,6 +58,7 @@ mod team;
 pub use map::TeamTrajectory;
 
 use std::collections::{BTreeMap, BTreeSet};
+use std::time::Duration;
 
 use link::{Arrival, Received};
 
@@ -133,14 +134,20 @@ pub struct AgentOptions {
     pub send_rotation: f64,
     /// A separator's pose is resent when it moved more than this (m + rad).
     pub send_pose: f64,
-    /// Steps after which an unacknowledged message is taken as lost.
-    pub resend_after: u64,
-    /// Steps a robot that converged in a stage waits for present neighbours that have not
-    /// (yet) sent anything in its frame before it moves on without them.
-    pub patience: u64,
-    /// Steps after which a stage ends even if it has not converged (the next stage
-    /// starts from where it is; the refinement corrects it).
-    pub max_stage_steps: u64,
+    /// Time after which an unacknowledged message is taken as lost. Every timeout is
+    /// time on the clock [`Agent::step`] is given, not a count of steps: on a robot a step
+    /// is one back-end loop turn, taken as often as there is work, so a step count would
+    /// mean anything from milliseconds to seconds.
+    pub resend_after: Duration,
+    /// How long a robot that converged in a stage waits for present neighbours that have
+    /// not (yet) sent anything in its frame before it moves on without them (time summed
+    /// over its converged steps); the condensed method's solver waits twice this for the
+    /// graphs of robots that route to it.
+    pub patience: Duration,
+    /// Time (summed over the stage's solved steps) after which a stage ends even if it
+    /// has not converged (the next stage starts from where it is; the refinement
+    /// corrects it).
+    pub max_stage: Duration,
     /// Levenberg-Marquardt iterations per refinement step.
     pub refine_iterations: usize,
     /// Nesterov momentum on every stage's block updates, restarted whenever the change
@@ -196,9 +203,13 @@ impl Default for AgentOptions {
             refine_change: 1e-3,
             send_rotation: 1e-3,
             send_pose: 1e-3,
-            resend_after: 4,
-            patience: 10,
-            max_stage_steps: 200,
+            // The runner's default round (`runner::RunOptions::round`, 0.1 s) times the
+            // step counts these were tuned as (4, 10 and 200 rounds), so runs on the
+            // developer data are those of BENCHMARKS.md; a robot's `[backend]` section
+            // sets its own (`resend_after_s`, `patience_s`, `max_stage_s`).
+            resend_after: Duration::from_millis(400),
+            patience: Duration::from_secs(1),
+            max_stage: Duration::from_secs(20),
             refine_iterations: 10,
             momentum: true,
             method: Method::default(),
@@ -240,10 +251,10 @@ struct Neighbor {
     /// The neighbour's `PoseEstimates` received, for acknowledgements.
     received: Received,
     ack_sequence: u64,
-    /// Sending side: next sequence, messages in flight (sequence → step sent, contents),
+    /// Sending side: next sequence, messages in flight (sequence → time sent, contents),
     /// and what the neighbour is known to hold.
     next_sequence: u64,
-    in_flight: BTreeMap<u64, (u64, Sent)>,
+    in_flight: BTreeMap<u64, (Duration, Sent)>,
     confirmed: Sent,
     /// The neighbour's epoch our confirmed state refers to (a restart forgets it).
     confirmed_epoch: Option<u64>,
@@ -332,9 +343,18 @@ pub struct Agent {
     closures: Vec<OwnClosure>,
     neighbors: BTreeMap<u8, Neighbor>,
     stage: Stage,
+    /// Solved steps in the current stage (the `round` its messages carry).
     stage_steps: u64,
-    /// Steps spent converged in the current stage while waiting for neighbours.
-    waiting: u64,
+    /// Time spent in the current stage's solved steps, and of them converged (waiting for
+    /// neighbours): each step adds the time since the previous step. (Time while the
+    /// robot could not solve — nothing in its frame yet — or had not converged is not
+    /// waiting: `patience` is time spent converged, `max_stage` time spent solving.)
+    stage_time: Duration,
+    waited: Duration,
+    /// The time [`Self::step`] was last given (monotonic, caller's origin), and the time
+    /// since the step before it (the first step: since the clock's origin).
+    now: Duration,
+    step_time: Duration,
     stage_converged: bool,
     anchored: bool,
     anchor: u8,
@@ -378,7 +398,10 @@ impl Agent {
             neighbors: BTreeMap::new(),
             stage: Stage::Rotation,
             stage_steps: 0,
-            waiting: 0,
+            stage_time: Duration::ZERO,
+            waited: Duration::ZERO,
+            now: Duration::ZERO,
+            step_time: Duration::ZERO,
             stage_converged: false,
             anchored: false,
             anchor: robot,
@@ -677,7 +700,8 @@ impl Agent {
         self.generation += 1;
         self.stage = Stage::Rotation;
         self.stage_steps = 0;
-        self.waiting = 0;
+        self.stage_time = Duration::ZERO;
+        self.waited = Duration::ZERO;
         self.stage_converged = false;
         self.poses.clone_from(&self.initial);
         self.relaxed = self
@@ -771,8 +795,14 @@ impl Agent {
         active.iter().any(|a| *a).then_some(active)
     }
 
-    /// One iteration of the current stage. Returns whether anything was solved.
-    pub fn step(&mut self) -> Result<bool, DpgoError> {
+    /// One iteration of the current stage at time `now` (a monotonic clock of the
+    /// caller's choosing, e.g. time since start; a robot passes its clock, the runner
+    /// rounds × round length, so runs repeat exactly). Every timeout of
+    /// [`AgentOptions`] is measured on it. Returns whether anything was solved.
+    pub fn step(&mut self, now: Duration) -> Result<bool, DpgoError> {
+        // A clock that went back (the caller's bug) must not make timeouts negative.
+        self.step_time = now.saturating_sub(self.now);
+        self.now = self.now.max(now);
         if self.options.method == Method::Condensed {
             return self.step_condensed();
         }
@@ -794,6 +824,7 @@ impl Agent {
         self.estimate_version += 1;
         self.anchored = true;
         self.stage_steps += 1;
+        self.stage_time += self.step_time;
         let threshold = match self.stage {
             Stage::Rotation => self.options.rotation_change,
             Stage::Pose => self.options.pose_change,
@@ -825,12 +856,12 @@ impl Agent {
     }
 
     /// Next stage once converged here and at the present neighbours of this frame (or
-    /// after `patience` steps of waiting, or `max_stage_steps` in the stage).
+    /// after `patience` of waiting, or `max_stage` in the stage).
     fn maybe_advance(&mut self) {
         if self.stage == Stage::Refine {
             return;
         }
-        let forced = self.stage_steps >= self.options.max_stage_steps;
+        let forced = self.stage_time >= self.options.max_stage;
         if !self.stage_converged && !forced {
             return;
         }
@@ -841,8 +872,8 @@ impl Agent {
                         && (s.stage > self.stage || (s.stage == self.stage && s.converged))
                 })
         });
-        self.waiting += 1;
-        if neighbours_done || forced || self.waiting > self.options.patience {
+        self.waited += self.step_time;
+        if neighbours_done || forced || self.waited > self.options.patience {
             tracing::debug!(
                 robot = self.robot,
                 stage = ?self.stage,
@@ -857,7 +888,8 @@ impl Agent {
                 _ => Stage::Refine,
             };
             self.stage_steps = 0;
-            self.waiting = 0;
+            self.stage_time = Duration::ZERO;
+            self.waited = Duration::ZERO;
             self.stage_converged = false;
             self.last_change = f64::INFINITY;
             self.reset_momentum();
@@ -1068,7 +1100,7 @@ impl Agent {
     }
 
     fn dgs_messages_for(&mut self, neighbor: u8) -> Result<Vec<Message>, DpgoError> {
-        let step = self.stats.steps;
+        let now = self.now;
         let separators = self.separators_for(neighbor);
         let flags = self.flags();
         let stage = self.stage;
@@ -1092,11 +1124,11 @@ impl Agent {
             n.ack_sequence += 1;
             out.push(ack);
         }
-        // Lost: unacknowledged for `resend_after` steps.
+        // Lost: unacknowledged for `resend_after`.
         let lost: Vec<u64> = n
             .in_flight
             .iter()
-            .filter(|(_, (sent, _))| step.saturating_sub(*sent) >= resend_after)
+            .filter(|(_, (sent, _))| now.saturating_sub(*sent) >= resend_after)
             .map(|(&s, _)| s)
             .collect();
         for s in lost {
@@ -1188,7 +1220,7 @@ impl Agent {
         }
         // All chunks carry the same state; record the values once under the last sequence.
         if let Some(last) = n.next_sequence.checked_sub(1) {
-            n.in_flight.insert(last, (step, carried));
+            n.in_flight.insert(last, (now, carried));
         }
         Ok(out)
     }

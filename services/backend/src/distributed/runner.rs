@@ -8,7 +8,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::ops::Range;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use doorslam_geometry::{key, LieGroup, TangentMatrix, SE3};
 use doorslam_ipc::wire::{
@@ -66,6 +66,9 @@ pub struct RunOptions {
     pub seed: u64,
     /// Rounds (every robot steps once per round, lowest id first: Gauss-Seidel order).
     pub max_rounds: u64,
+    /// Simulated time of one round: the agents' clock reads round × this at their step
+    /// (their timeouts are in seconds), so runs are deterministic whatever the machine.
+    pub round: Duration,
     /// Robot → round at which it joins (its closures appear then, on both sides).
     pub join_at: BTreeMap<u8, u64>,
     /// Robot → rounds during which it is out of range of everyone.
@@ -86,6 +89,7 @@ impl Default for RunOptions {
             drop: 0.0,
             seed: 1,
             max_rounds: 500,
+            round: Duration::from_millis(100),
             join_at: BTreeMap::new(),
             outage: BTreeMap::new(),
             team_map: BTreeMap::new(),
@@ -592,7 +596,12 @@ pub fn run_over(
             let Some(agent) = agents.get_mut(&r) else {
                 continue;
             };
-            agent.step()?;
+            // Round r ends r + 1 rounds after the start (an agent's first step then
+            // counts one round, as when the timeouts were counted in steps).
+            let now = options
+                .round
+                .saturating_mul(u32::try_from(round + 1).unwrap_or(u32::MAX));
+            agent.step(now)?;
             let neighbors: Vec<u8> = agent.neighbors().collect();
             for n in neighbors {
                 if !(joined(n, round) && in_range(n, round) && in_range(r, round)) {

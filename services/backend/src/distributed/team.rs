@@ -98,9 +98,9 @@ pub(crate) struct TeamState {
     /// Solver: the graph versions the last solve used, and the solve count.
     pub solved_with: BTreeMap<u8, u64>,
     pub rounds: u64,
-    /// Solver: steps waited for the graphs of robots that route to it, and whether a
-    /// graph changed since the last step.
-    pub waiting: u64,
+    /// Solver: since when (agent clock) it waits for the graphs of robots that route to
+    /// it, and whether a graph changed since the last step.
+    pub waiting_since: Option<std::time::Duration>,
     pub fresh: bool,
     /// Separator estimates per robot: at the solver every robot's it solved, elsewhere
     /// those of this robot and of its subtree, as received from the parent.
@@ -473,15 +473,15 @@ impl Agent {
         // away come a hop per step: solving before they are all in would send estimates
         // the next solve replaces (bytes for nothing). So the solver waits until every
         // robot of its subtree sent one and no graph changed for a step — for at most
-        // twice `patience` steps (graphs of a large team take a step per hop; a running
+        // twice `patience` (graphs of a large team take a link delivery per hop; a running
         // team's graphs may keep changing).
         let missing = members(self.subtree()).any(|r| !self.team.graphs.contains_key(&r));
         let fresh = std::mem::take(&mut self.team.fresh);
-        if (missing || fresh) && self.team.waiting < 2 * self.options.patience {
-            self.team.waiting += 1;
+        let since = *self.team.waiting_since.get_or_insert(self.now);
+        if (missing || fresh) && self.now.saturating_sub(since) < 2 * self.options.patience {
             return Ok(false);
         }
-        self.team.waiting = 0;
+        self.team.waiting_since = None;
         tracing::debug!(robot = self.robot, ?versions, "solve");
         let graphs: BTreeMap<u8, &[CondensedEdge]> = self
             .team
@@ -815,7 +815,7 @@ impl Agent {
 
     pub(crate) fn team_messages_for(&mut self, neighbor: u8) -> Result<Vec<Message>, DpgoError> {
         let mut out = Vec::new();
-        let step = self.stats.steps;
+        let now = self.now;
         let resend_after = self.options.resend_after;
         let parent = self.parent();
         let subtree = self.subtree();
@@ -837,14 +837,14 @@ impl Agent {
         }
         // What was not acknowledged in time is lost (and what built on it).
         let l = &mut n.team;
-        let routes = l.route_out.expire(step, resend_after).len();
-        let graphs = l.graph_out.expire(step, resend_after);
-        let estimates = l.est_out.expire(step, resend_after);
+        let routes = l.route_out.expire(now, resend_after).len();
+        let graphs = l.graph_out.expire(now, resend_after);
+        let estimates = l.est_out.expire(now, resend_after);
         l.lost(routes, &graphs, &estimates);
         self.stats.resent += (routes + graphs.len() + estimates.len()) as u64;
         // The route, when the neighbour's copy differs.
         if l.route_view() != Some(&route) {
-            let s = l.route_out.send(step, route.clone());
+            let s = l.route_out.send(now, route.clone());
             out.push(Message::new(self.header(s), Body::Route(route)));
         }
         let n = self.neighbors.get(&neighbor).map(|n| &n.team);
@@ -883,7 +883,7 @@ impl Agent {
             let view = view.filter(|_| updates);
             let body = graph_update(origin, &held, view.as_ref(), self.header(0))?;
             if let Some(l) = self.neighbors.get_mut(&neighbor).map(|n| &mut n.team) {
-                let s = l.graph_out.send(step, (origin, held));
+                let s = l.graph_out.send(now, (origin, held));
                 out.push(Message::new(self.header(s), Body::SeparatorGraph(body)));
             }
         }
@@ -915,7 +915,7 @@ impl Agent {
                     n = values.len(),
                     "estimates"
                 );
-                let seq = l.est_out.send(step, (robot, carried));
+                let seq = l.est_out.send(now, (robot, carried));
                 self.stats.estimates_sent += values.len() as u64;
                 out.push(Message::new(
                     self.header(seq),

@@ -31,6 +31,7 @@ use doorslam_ipc::{
     create_node, EnvelopeEvent, Keyframe, Lifecycle, LoopClosure, OdometryEdge, PoseEstimate,
     Receiver, Sender, Topic, WireEnvelope,
 };
+use serde::de::IgnoredAny;
 use serde::Deserialize;
 
 use crate::distributed::{condensed::PcmSettings, AgentOptions};
@@ -88,6 +89,27 @@ pub struct BackendSection {
     /// this often (seconds; 0 = only when stopping).
     #[serde(default = "default_write_every_s")]
     pub write_every_s: f64,
+    /// The distributed back-end's timeouts, in seconds of the robot's clock (a back-end
+    /// loop turn is no fixed time, so none counts turns): a message of its own
+    /// retransmission layer unacknowledged this long is lost (`resend_after_s`; unused over
+    /// the team link, whose delivery contract resends), a robot converged in a stage waits
+    /// this long for its neighbours and the team's solver twice this for missing graphs
+    /// (`patience_s`: a graph crosses a hop per link delivery, which takes 1-16 s when the
+    /// radio retransmits), a stage ends after at most `max_stage_s`.
+    #[serde(default = "default_resend_after_s")]
+    pub resend_after_s: f64,
+    #[serde(default = "default_patience_s")]
+    pub patience_s: f64,
+    #[serde(default = "default_max_stage_s")]
+    pub max_stage_s: f64,
+    /// Keys of before the timeouts were seconds: refused by name (`validate`), so an old
+    /// robot.toml fails saying what replaces them rather than silently meaning steps.
+    #[serde(default)]
+    pub resend_after: Option<IgnoredAny>,
+    #[serde(default)]
+    pub patience: Option<IgnoredAny>,
+    #[serde(default)]
+    pub max_stage_steps: Option<IgnoredAny>,
 }
 
 fn default_state_dir() -> PathBuf {
@@ -108,6 +130,15 @@ fn default_min_clique() -> usize {
 fn default_write_every_s() -> f64 {
     1.0
 }
+fn default_resend_after_s() -> f64 {
+    2.0
+}
+fn default_patience_s() -> f64 {
+    5.0
+}
+fn default_max_stage_s() -> f64 {
+    60.0
+}
 
 impl Default for BackendSection {
     fn default() -> Self {
@@ -119,6 +150,12 @@ impl Default for BackendSection {
             pcm_min_clique: default_min_clique(),
             pcm_cycles: true,
             write_every_s: default_write_every_s(),
+            resend_after_s: default_resend_after_s(),
+            patience_s: default_patience_s(),
+            max_stage_s: default_max_stage_s(),
+            resend_after: None,
+            patience: None,
+            max_stage_steps: None,
         }
     }
 }
@@ -147,6 +184,36 @@ impl BackendSection {
                 self.write_every_s
             )));
         }
+        for (old, given, new) in [
+            (
+                "resend_after",
+                self.resend_after.is_some(),
+                "resend_after_s",
+            ),
+            ("patience", self.patience.is_some(), "patience_s"),
+            (
+                "max_stage_steps",
+                self.max_stage_steps.is_some(),
+                "max_stage_s",
+            ),
+        ] {
+            if given {
+                return Err(ServiceError::Config(format!(
+                    "backend.{old} counted back-end steps and is gone: use backend.{new} (seconds)"
+                )));
+            }
+        }
+        for (name, v) in [
+            ("resend_after_s", self.resend_after_s),
+            ("patience_s", self.patience_s),
+            ("max_stage_s", self.max_stage_s),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v <= 3600.0) {
+                return Err(ServiceError::Config(format!(
+                    "backend.{name} = {v}: seconds above 0, at most 3600"
+                )));
+            }
+        }
         Ok(())
     }
 
@@ -163,6 +230,9 @@ impl BackendSection {
                     min_clique: self.pcm_min_clique,
                     cycles: self.pcm_cycles,
                 }),
+                resend_after: Duration::from_secs_f64(self.resend_after_s),
+                patience: Duration::from_secs_f64(self.patience_s),
+                max_stage: Duration::from_secs_f64(self.max_stage_s),
                 ..AgentOptions::default()
             }),
             write_every: Duration::from_secs_f64(self.write_every_s),

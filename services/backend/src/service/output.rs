@@ -94,7 +94,16 @@ pub struct TeamStatus {
     pub anchored: bool,
     /// The robot (key letter) whose first keyframe is the team frame.
     pub anchor: String,
+    /// Settled (nothing in flight or due, refinement done) and, when this robot solves the
+    /// team's separator graph, its last solve met the solver's convergence test (false
+    /// when it stopped on its iteration limit).
     pub converged: bool,
+    /// Nothing in flight or due and refinement done, whatever the solver's stop reason.
+    pub settled: bool,
+    /// Why this robot's last solve of the team's separator graph stopped
+    /// (`converged_small_decrease`, `max_iterations`, ...); null when this robot ran none
+    /// (another robot solves the team, or the DGS method).
+    pub stop_reason: Option<String>,
     pub present: Vec<String>,
     pub neighbors: Vec<String>,
     /// Closures PCM left out of the last solve, as key labels.
@@ -143,7 +152,9 @@ impl Outputs {
                 epoch: b.epoch(),
                 anchored: a.anchored(),
                 anchor: letter(a.anchor()),
-                converged: a.converged(),
+                converged: a.converged() && a.last_solve().is_none_or(|s| s.converged),
+                settled: a.converged(),
+                stop_reason: a.last_solve().map(|s| s.stop_reason.as_str().to_string()),
                 present: b.present().map(letter).collect(),
                 neighbors: a.neighbors().map(letter).collect(),
                 rejected_closures: a

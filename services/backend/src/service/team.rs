@@ -19,6 +19,7 @@
 //! This is a plain struct fed by values: no iceoryx2 here, tested in-process.
 
 use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
 
 use doorslam_geometry::{key, TangentMatrix, SE3};
 use doorslam_ipc::wire::{Message, RobotId};
@@ -84,6 +85,8 @@ pub struct TeamBridge {
     /// Something changed since the agent last stepped.
     dirty: bool,
     stats: BridgeStats,
+    /// The origin of the agent's clock (its timeouts are in seconds of it).
+    started: Instant,
 }
 
 impl TeamBridge {
@@ -102,6 +105,7 @@ impl TeamBridge {
             team_epoch: None,
             dirty: true,
             stats: BridgeStats::default(),
+            started: Instant::now(),
         }
     }
 
@@ -242,11 +246,16 @@ impl TeamBridge {
     /// Iterates the agent when something changed (new keyframes, closures, messages,
     /// peers); whether it solved anything.
     pub fn step(&mut self) -> Result<bool, DpgoError> {
+        self.step_at(self.started.elapsed())
+    }
+
+    /// [`Self::step`] at `now` since the bridge started (tests drive a simulated clock).
+    pub fn step_at(&mut self, now: Duration) -> Result<bool, DpgoError> {
         if !self.dirty {
             return Ok(false);
         }
         self.dirty = false;
-        let solved = self.agent.step()?;
+        let solved = self.agent.step(now)?;
         // Messages still due (a neighbour newly present, forwarding delays) need more steps.
         if !self.agent.converged() {
             self.dirty = true;
