@@ -195,6 +195,7 @@ fn a_hostile_teammate_cannot_crash_stall_or_flood_the_team() {
     let mut rng = Rng(0x05ee_d0fa_77ac);
     let mut injected = [0u64; 2];
     let mut by_what = std::collections::BTreeMap::<&str, u64>::new();
+    let mut epoch_claims = 0u64;
     let kinds: Vec<&str> = Kind::ALL.iter().map(|k| k.name()).collect();
     let rss_start = rss_kb();
     let mut rss_after_warmup = 0;
@@ -220,6 +221,12 @@ fn a_hostile_teammate_cannot_crash_stall_or_flood_the_team() {
                     for _ in 0..1 + rng.below(8) {
                         let i = rng.below(bytes.len() as u64) as usize;
                         bytes[i] = rng.next() as u8;
+                    }
+                    // A flip in the header's epoch that still decodes claims a new epoch
+                    // of z: z's session restarts (only z can claim z's epoch), and its
+                    // older-epoch messages that follow are refused as stale.
+                    if Message::decode(&bytes).is_ok_and(|f| f.header.epoch > m.header.epoch) {
+                        epoch_claims += 1;
                     }
                     ("bit_flipped", m.kind().name(), bytes)
                 }
@@ -278,7 +285,7 @@ fn a_hostile_teammate_cannot_crash_stall_or_flood_the_team() {
     }
     let rss_end = rss_kb();
     println!(
-        "hostile: {sent} messages ({by_what:?}), {steps_during_attack} steps under attack; \
+        "hostile: {sent} messages ({by_what:?}; {epoch_claims} bit flips claim a newer epoch), {steps_during_attack} steps under attack; \
          RSS {rss_start} kB at the start, {rss_after_warmup} kB after 100k, {rss_end} kB at the end"
     );
     assert!(
