@@ -82,14 +82,9 @@ fn demo(out: &Path, extra: &[&str]) -> Value {
     }
     // The run record, read by decoders that are not ours: every robot's last team path
     // is its team_estimate.tum (when the set-up's venv has them).
-    let python = std::path::PathBuf::from(std::env::var("HOME").unwrap_or_default())
-        .join(".cache/doorslam/venv/bin/python");
-    let has = std::process::Command::new(&python)
-        .args(["-c", "import mcap, mcap_ros2"])
-        .status()
-        .is_ok_and(|s| s.success());
-    if has {
-        let check = std::process::Command::new(&python)
+    let python = doorslam_hil::ros2_record::reference_python(&["mcap", "mcap_ros2"]);
+    if let Ok(python) = &python {
+        let check = std::process::Command::new(python)
             .arg(concat!(
                 env!("CARGO_MANIFEST_DIR"),
                 "/tests/ros2/check_mcap.py"
@@ -104,11 +99,8 @@ fn demo(out: &Path, extra: &[&str]) -> Value {
             String::from_utf8_lossy(&check.stdout),
             String::from_utf8_lossy(&check.stderr)
         );
-    } else {
-        println!(
-            "run.mcap not decoded: {} lacks mcap/mcap_ros2",
-            python.display()
-        );
+    } else if let Err(why) = &python {
+        println!("run.mcap not decoded: {why}");
     }
     // Today's fields stay, the new ones are there.
     for field in [

@@ -482,6 +482,32 @@ fn bandwidth(robots: &[Robot], time_ns: i64) -> Result<Option<DiagnosticArray>, 
     }))
 }
 
+/// The set-up's Python (`$DOORSLAM_HOME/venv/bin/python`, default under
+/// `~/.cache/doorslam`) when it imports every one of `modules`: what the ROS 2 checks of
+/// `tests/ros2/` decode with (decoders that are not ours). `Err` says what is missing.
+pub fn reference_python(modules: &[&str]) -> Result<PathBuf, String> {
+    let home = std::env::var_os("DOORSLAM_HOME")
+        .map(PathBuf::from)
+        .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache/doorslam")));
+    let python = home
+        .map(|h| h.join("venv/bin/python"))
+        .filter(|p| p.is_file())
+        .ok_or("no set-up venv (run deploy/setup)")?;
+    let imports = format!("import {}", modules.join(", "));
+    let has = std::process::Command::new(&python)
+        .args(["-c", &imports])
+        .status()
+        .is_ok_and(|s| s.success());
+    if has {
+        Ok(python)
+    } else {
+        Err(format!(
+            "{} cannot {imports} (run deploy/setup)",
+            python.display()
+        ))
+    }
+}
+
 /// Writes `out` (default `<run>/run.mcap`) from the run folder `run`.
 pub fn record(run: &Path, out: Option<&Path>) -> Result<RecordSummary, RecordError> {
     let out = out.map_or_else(|| run.join("run.mcap"), Path::to_path_buf);

@@ -12,7 +12,7 @@ use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
 
 use doorslam_hil::ros2_live::{replay, ReplayOptions};
-use doorslam_hil::ros2_record::run_messages;
+use doorslam_hil::ros2_record::{reference_python, run_messages};
 
 fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
@@ -28,27 +28,13 @@ fn free_port() -> u16 {
 
 #[test]
 fn a_replay_is_what_rmw_zenoh_publishes() {
-    let home = std::env::var_os("DOORSLAM_HOME")
-        .map(PathBuf::from)
-        .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache/doorslam")));
-    let Some(python) = home
-        .map(|h| h.join("venv/bin/python"))
-        .filter(|p| p.is_file())
-    else {
-        println!("skipped: no set-up venv (run deploy/setup)");
-        return;
+    let python = match reference_python(&["zenoh", "rosbags", "xxhash"]) {
+        Ok(p) => p,
+        Err(why) => {
+            println!("skipped: {why}");
+            return;
+        }
     };
-    let has = Command::new(&python)
-        .args(["-c", "import zenoh, rosbags, xxhash"])
-        .status()
-        .is_ok_and(|s| s.success());
-    if !has {
-        println!(
-            "skipped: {} has no eclipse-zenoh/rosbags/xxhash (run deploy/setup)",
-            python.display()
-        );
-        return;
-    }
     let run = repo().join("tests/ros2/run");
     let expect = run_messages(&run).unwrap().samples.len();
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());

@@ -10,7 +10,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use doorslam_hil::ros2_record::{read_tum, record, TEAM_FRAME};
+use doorslam_hil::ros2_record::{read_tum, record, reference_python, TEAM_FRAME};
 use doorslam_ros2_wire::msgs::{
     Header, Path as RosPath, Point, Pose, PoseStamped, Quaternion, Time,
 };
@@ -112,27 +112,13 @@ fn the_record_holds_every_topic_and_the_final_team_paths() {
 /// Runs `check_mcap.py` on `<run>/run.mcap`: `None` (reason printed) without the venv's
 /// decoders, else whether it passed and what it printed.
 fn check_mcap(run: &Path, closures: &[&str]) -> Option<(bool, String)> {
-    let home = std::env::var_os("DOORSLAM_HOME")
-        .map(PathBuf::from)
-        .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache/doorslam")));
-    let Some(python) = home
-        .map(|h| h.join("venv/bin/python"))
-        .filter(|p| p.is_file())
-    else {
-        println!("skipped: no set-up venv (run deploy/setup)");
-        return None;
+    let python = match reference_python(&["mcap", "mcap_ros2"]) {
+        Ok(p) => p,
+        Err(why) => {
+            println!("skipped: {why}");
+            return None;
+        }
     };
-    let has = std::process::Command::new(&python)
-        .args(["-c", "import mcap, mcap_ros2"])
-        .status()
-        .is_ok_and(|s| s.success());
-    if !has {
-        println!(
-            "skipped: {} has no mcap/mcap_ros2 (run deploy/setup)",
-            python.display()
-        );
-        return None;
-    }
     let out = std::process::Command::new(&python)
         .arg(repo().join("tests/ros2/check_mcap.py"))
         .arg(run.join("run.mcap"))
