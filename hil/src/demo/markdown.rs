@@ -61,8 +61,9 @@ pub fn report(s: &Summary, bw_table: &str) -> String {
         s.security.mode,
         if s.security.tls {
             format!(
-                " (team CA and robot certificates in `{}`, clockless validity; robots {} each admitted only as itself)",
+                " (team CA and robot certificates in `{}`, {} validity; robots {} each admitted only as itself)",
                 s.security.certificates.as_deref().unwrap_or("certs/"),
+                s.security.validity.as_deref().unwrap_or("dated"),
                 s.security.roster.join(", ")
             )
         } else {
