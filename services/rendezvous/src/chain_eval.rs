@@ -18,6 +18,7 @@
 
 use std::collections::{BTreeMap, BTreeSet, HashSet};
 
+use doorslam_backend::outliers::{maximum_clique, CliqueOptions, ConsistencyGraph};
 use doorslam_dataset::StereoCalibration;
 use doorslam_frontend::verify_bench::pose_error;
 use doorslam_frontend::{from_packet, to_packet, verify, Feature, VerifyConfig};
@@ -349,37 +350,34 @@ fn consistent(set: &EvalSet, a: &Verified, b: &Verified) -> bool {
         && cycle.rotation.angle().to_degrees() <= CONSENSUS_DEG
 }
 
-/// The largest pairwise-consistent set of a robot pair's closures (greedy: closures by
-/// descending number of consistent partners, each kept if it agrees with all kept so far;
-/// the back-end's PCM searches the exact maximum clique), or nothing below
+/// The largest pairwise-consistent set of a robot pair's closures, or nothing below
 /// [`CONSENSUS_MIN`]. Look-alike places (the aliased building copies) each imply another
 /// offset between the two robots' frames, so they disagree with the true closures.
 fn consensus(set: &EvalSet, closures: &[Verified]) -> Vec<usize> {
-    let n = closures.len();
-    let mut agree = vec![vec![false; n]; n];
+    largest_consistent_set(closures.len(), |i, j| {
+        consistent(set, &closures[i], &closures[j])
+    })
+}
+
+/// The maximum clique of the agreement graph of `n` closures (`agree(i, j)` for `i < j`),
+/// found by the back-end's PCM search ([`maximum_clique`]: exact, deterministic), sorted;
+/// empty when it has fewer than [`CONSENSUS_MIN`] closures. Exact matters: a greedy pass
+/// that starts from the closure with most partners can be led by one closure that agrees
+/// with members of two rival sets into keeping neither whole (the test below).
+fn largest_consistent_set(n: usize, agree: impl Fn(usize, usize) -> bool) -> Vec<usize> {
+    let mut graph = ConsistencyGraph::new(n);
     for i in 0..n {
         for j in i + 1..n {
-            let ok = consistent(set, &closures[i], &closures[j]);
-            agree[i][j] = ok;
-            agree[j][i] = ok;
+            if agree(i, j) {
+                // Both indices are below n: add_edge cannot fail.
+                let _ = graph.add_edge(i, j);
+            }
         }
     }
-    let degree: Vec<usize> = agree
-        .iter()
-        .map(|r| r.iter().filter(|&&x| x).count())
-        .collect();
-    let mut order: Vec<usize> = (0..n).collect();
-    order.sort_by_key(|&i| (std::cmp::Reverse(degree[i]), i));
-    let mut kept: Vec<usize> = Vec::new();
-    for i in order {
-        if kept.iter().all(|&k| agree[i][k]) {
-            kept.push(i);
-        }
-    }
+    let mut kept = maximum_clique(&graph, &CliqueOptions::default()).vertices;
     if kept.len() < CONSENSUS_MIN {
         kept.clear();
     }
-    kept.sort_unstable();
     kept
 }
 
@@ -469,4 +467,56 @@ pub fn keyframe_features(
         calibration,
         1e3 * seconds / set.keyframes.len().max(1) as f64,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The agreement of a trap for a greedy pass: closures 1-4 agree with one another (the
+    /// true offset between two robots); closure 0 agrees with 1 and with 5-8, which agree
+    /// with nothing else (each a look-alike place implying its own offset). 0 has the most
+    /// partners, so a greedy pass by degree keeps 0, then 1, and then nothing else agrees
+    /// with both.
+    fn trap(i: usize, j: usize) -> bool {
+        let (i, j) = (i.min(j), i.max(j));
+        let truth = |v: usize| (1..=4).contains(&v);
+        (truth(i) && truth(j)) || (i == 0 && (j == 1 || (5..=8).contains(&j)))
+    }
+
+    /// The greedy pass this stage used before: closures by descending number of partners,
+    /// each kept if it agrees with all kept so far.
+    fn greedy(n: usize, agree: impl Fn(usize, usize) -> bool) -> Vec<usize> {
+        let degree: Vec<usize> = (0..n)
+            .map(|i| (0..n).filter(|&j| j != i && agree(i, j)).count())
+            .collect();
+        let mut order: Vec<usize> = (0..n).collect();
+        order.sort_by_key(|&i| (std::cmp::Reverse(degree[i]), i));
+        let mut kept: Vec<usize> = Vec::new();
+        for i in order {
+            if kept.iter().all(|&k| agree(i, k)) {
+                kept.push(i);
+            }
+        }
+        kept.sort_unstable();
+        kept
+    }
+
+    #[test]
+    fn the_consensus_is_the_maximum_clique_where_a_greedy_pass_is_trapped() {
+        assert_eq!(
+            greedy(9, trap),
+            vec![0, 1],
+            "the scene must trap the greedy pass"
+        );
+        assert_eq!(largest_consistent_set(9, trap), vec![1, 2, 3, 4]);
+    }
+
+    #[test]
+    fn fewer_than_the_minimum_agreeing_closures_keep_nothing() {
+        // No two closures agree: every clique is a single closure.
+        assert!(largest_consistent_set(5, |_, _| false).is_empty());
+        assert!(largest_consistent_set(0, |_, _| true).is_empty());
+        assert_eq!(largest_consistent_set(2, |_, _| true), vec![0, 1]);
+    }
 }
