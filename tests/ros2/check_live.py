@@ -92,7 +92,6 @@ def main():
     if (a.expect is None) == (not a.live):
         ap.error("give --expect N (a replay) or --live (a running robot)")
     run = Path(a.run_dir)
-    robots = sorted(p.parent.name for p in run.glob("*/keyframes.csv"))
 
     conf = zenoh.Config()
     conf.insert_json5("mode", '"peer"')
@@ -131,6 +130,8 @@ def main():
     live.undeclare()
     session.close()
 
+    # Read at the end: a live robot's back-end may write its folder after this started.
+    robots = sorted(p.parent.name for p in run.glob("*/keyframes.csv"))
     errors = []
     d = a.domain
     node_re = re.compile(rf"^@ros2_lv/{d}/([0-9a-f]+)/(\d+)/\2/NN/%/%(\w+)/doorslam$")
