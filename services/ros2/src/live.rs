@@ -269,9 +269,12 @@ fn fingerprint(dir: &Path) -> Fingerprint {
         .collect()
 }
 
+/// Encoded messages of one state, by topic.
+type Snapshot = Vec<(Topic, Vec<u8>)>;
+
 /// The current state of the folder as encoded messages, `None` before the back-end wrote
 /// its first files.
-fn snapshot(c: &LiveConfig) -> Result<Option<Vec<(Topic, Vec<u8>)>>, RecordError> {
+fn snapshot(c: &LiveConfig) -> Result<Option<Snapshot>, RecordError> {
     if !c.dir.join("keyframes.csv").is_file() || !c.dir.join("odometry.tum").is_file() {
         return Ok(None);
     }
@@ -369,7 +372,7 @@ pub fn run(c: &LiveConfig, stop: &AtomicBool) -> Result<LiveSummary, LiveError> 
     let period = Duration::from_secs_f64(1.0 / c.rate_hz);
     let mut next = start;
     let mut seen: Option<Fingerprint> = None;
-    let mut current: Vec<(Topic, Vec<u8>)> = Vec::new();
+    let mut current: Snapshot = Vec::new();
     let mut last_error: Option<String> = None;
     let result = loop {
         if stop.load(Ordering::Relaxed) {
