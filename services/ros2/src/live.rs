@@ -367,6 +367,25 @@ pub fn run(c: &LiveConfig, stop: &AtomicBool) -> Result<LiveSummary, LiveError> 
         rate_hz = c.rate_hz,
         "ros2: publishing"
     );
+    doorslam_ipc::lifecycle::sd_notify(&format!(
+        "READY=1\nSTATUS=ros2: /{}/doorslam at {} Hz",
+        c.namespace, c.rate_hz
+    ));
+    // Pinged while waiting too: a slow rate's period may exceed the unit's watchdog.
+    let watchdog = doorslam_ipc::lifecycle::watchdog_interval();
+    let mut pinged = Instant::now();
+    let mut wait_until = |t: Instant| {
+        while !stop.load(Ordering::Relaxed) && Instant::now() < t {
+            if watchdog.is_some_and(|w| pinged.elapsed() >= w) {
+                doorslam_ipc::lifecycle::sd_notify("WATCHDOG=1");
+                pinged = Instant::now();
+            }
+            std::thread::sleep(
+                t.saturating_duration_since(Instant::now())
+                    .min(Duration::from_millis(50)),
+            );
+        }
+    };
 
     let start = Instant::now();
     let period = Duration::from_secs_f64(1.0 / c.rate_hz);
@@ -415,8 +434,9 @@ pub fn run(c: &LiveConfig, stop: &AtomicBool) -> Result<LiveSummary, LiveError> 
         summary.ticks += 1;
         // A late tick (a loaded machine) is not caught up by a burst.
         next = (next + period).max(Instant::now());
-        sleep_until(next, stop);
+        wait_until(next);
     };
+    doorslam_ipc::lifecycle::sd_notify("STOPPING=1");
     summary.seconds = start.elapsed().as_secs_f64();
     summary.samples = publishers.iter().map(|(_, p)| p.samples()).sum();
     summary.bytes = publishers.iter().map(|(_, p)| p.bytes).sum();
