@@ -32,6 +32,8 @@ pub struct RobotConfig {
     pub rendezvous: doorslam_rendezvous::RendezvousSection,
     #[serde(default)]
     pub record: RecordSection,
+    #[serde(default)]
+    pub ros2: doorslam_ros2::Ros2Section,
 }
 
 /// `[record]`: what `doorslam up` records when it stops.
@@ -113,6 +115,16 @@ impl Default for RobotSection {
 }
 
 impl RobotConfig {
+    /// The services `doorslam up` starts, in order: `[up] services`, and `ros2` last when
+    /// `[ros2] enabled` (a reader of the back-end's files, it stops first).
+    pub fn up_services(&self) -> Vec<String> {
+        let mut out = self.up.services.clone();
+        if self.ros2.enabled && !out.iter().any(|s| s == "ros2") {
+            out.push("ros2".into());
+        }
+        out
+    }
+
     /// Reads and validates a config file; errors name the file and the offending key.
     pub fn load(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path)
@@ -167,6 +179,11 @@ impl RobotConfig {
         self.rendezvous.validate().map_err(anyhow::Error::msg)?;
         if self.sim_keyframes.every == 0 {
             bail!("sim_keyframes.every must be >= 1");
+        }
+        self.ros2.validate(id)?;
+        let ros2_listed = self.up.services.iter().any(|s| s == "ros2");
+        if ros2_listed && !self.ros2.enabled {
+            bail!("up.services lists ros2 but ros2.enabled = false: set ros2.enabled = true (then `up` starts it without the list)");
         }
         for s in &self.up.services {
             if crate::cli::service_names().iter().all(|n| n != s) {

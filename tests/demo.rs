@@ -82,7 +82,7 @@ fn demo(out: &Path, extra: &[&str]) -> Value {
     }
     // The run record, read by decoders that are not ours: every robot's last team path
     // is its team_estimate.tum (when the set-up's venv has them).
-    let python = doorslam_hil::ros2_record::reference_python(&["mcap", "mcap_ros2"]);
+    let python = doorslam_ros2::reference_python(&["mcap", "mcap_ros2"]);
     if let Ok(python) = &python {
         let check = std::process::Command::new(python)
             .arg(concat!(

@@ -44,8 +44,6 @@ mod noise;
 pub mod posegraph_sim;
 mod render;
 mod rng;
-pub mod ros2_live;
-pub mod ros2_record;
 pub mod sensor;
 pub mod sim_keyframes;
 mod texture;

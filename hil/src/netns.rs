@@ -102,6 +102,24 @@ impl Net {
         Ok(net)
     }
 
+    /// Gives this host an address on the robots' bridge (`10.<subnet>.254`), so a process
+    /// here (a laptop's `rmw_zenohd`) reaches the robots' addresses; returns it. The
+    /// robots' loss rules (`--drop`) apply to its packets as to any host's on the radio.
+    pub fn attach_host(&self) -> Result<String, NetError> {
+        let first = self.addr.first().ok_or(NetError::NoRobot(0))?;
+        let prefix = first.rsplit_once('.').map_or(first.as_str(), |(p, _)| p);
+        let host = format!("{prefix}.254");
+        sh(&[
+            "ip",
+            "addr",
+            "add",
+            &format!("{host}/24"),
+            "dev",
+            &self.bridge,
+        ])?;
+        Ok(host)
+    }
+
     pub fn robots(&self) -> usize {
         self.ns.len()
     }

@@ -72,6 +72,11 @@ pub struct DemoArgs {
     /// every robot uses mutual TLS and the access control.
     #[arg(long)]
     pub insecure: bool,
+    /// Every robot also publishes its state as ROS 2 topics (`[ros2] enabled`, plain TCP
+    /// on its address, port 7547; loopback: 17547 + robot), for RViz / Foxglove with
+    /// `rmw_zenoh_cpp` (README, ROS 2).
+    #[arg(long)]
+    pub ros2: bool,
     /// Print `summary.json` on stdout at the end.
     #[arg(long)]
     pub json: bool,
@@ -149,6 +154,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
     config.settle_s = args.settle_s;
     config.realistic_camera = args.camera == CameraArg::Realistic;
     config.insecure = args.insecure;
+    config.ros2 = args.ros2;
 
     let tty = std::io::stderr().is_terminal();
     let multi = MultiProgress::new();

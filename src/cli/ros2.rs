@@ -1,7 +1,7 @@
 //! `doorslam ros2 record RUN_DIR [--out FILE]`: a finished run folder as ROS 2 messages in
-//! an MCAP file (logic in `doorslam_hil::ros2_record`); `doorslam ros2 replay RUN_DIR
+//! an MCAP file (logic in `doorslam_ros2::record`); `doorslam ros2 replay RUN_DIR
 //! [--listen EP] [--connect EP] [--rate R]`: the same messages over Zenoh as rmw_zenoh
-//! publishes them (`doorslam_hil::ros2_live`).
+//! publishes them (`doorslam_ros2::replay`).
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -9,7 +9,7 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
-use doorslam_hil::ros2_live::ReplayOptions;
+use doorslam_ros2::replay::ReplayOptions;
 
 #[derive(Debug, Args)]
 pub struct Ros2Args {
@@ -67,7 +67,7 @@ pub struct RecordArgs {
 pub fn run(args: Ros2Args) -> Result<()> {
     match args.command {
         Ros2Command::Record(a) => {
-            let s = doorslam_hil::ros2_record::record(&a.run_dir, a.out.as_deref())
+            let s = doorslam_ros2::record::record(&a.run_dir, a.out.as_deref())
                 .with_context(|| format!("doorslam ros2 record {}", a.run_dir.display()))?;
             if a.json {
                 println!("{}", serde_json::to_string(&s)?);
@@ -99,7 +99,7 @@ pub fn run(args: Ros2Args) -> Result<()> {
                 rate: a.rate,
                 ..ReplayOptions::default()
             };
-            let s = doorslam_hil::ros2_live::replay(&a.run_dir, &options, &stop)
+            let s = doorslam_ros2::replay::replay(&a.run_dir, &options, &stop)
                 .with_context(|| format!("doorslam ros2 replay {}", a.run_dir.display()))?;
             if a.json {
                 println!("{}", serde_json::to_string(&s)?);

@@ -18,6 +18,8 @@ pub enum ServiceName {
     Team,
     /// Simulation stand-in for the front-end: ground-truth keyframes (not VO).
     SimKeyframes,
+    /// The robot's state as ROS 2 topics over Zenoh, as rmw_zenoh publishes (`[ros2]`).
+    Ros2,
 }
 
 #[derive(Debug, Args)]
@@ -74,6 +76,32 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                 .backend
                 .for_robot(&config.robot.id, config.robot.index);
             doorslam_backend::service::run(&c)?;
+            Ok(())
+        }
+        ServiceName::Ros2 => {
+            if !config.ros2.enabled {
+                anyhow::bail!(
+                    "ros2.enabled = false: the ROS 2 publishers are off (set ros2.enabled = true)"
+                );
+            }
+            let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+            let flag = stop.clone();
+            ctrlc::set_handler(move || flag.store(true, std::sync::atomic::Ordering::SeqCst))?;
+            let c = config.ros2.for_robot(
+                &config.robot.id,
+                u8::try_from(config.robot.index)?,
+                &config.backend.state_dir,
+            );
+            let s = doorslam_ros2::live::run(&c, &stop)?;
+            tracing::info!(
+                ticks = s.ticks,
+                reads = s.reads,
+                read_errors = s.read_errors,
+                samples = s.samples,
+                bytes = s.bytes,
+                seconds = s.seconds,
+                "ros2: stopped"
+            );
             Ok(())
         }
         ServiceName::Team => {

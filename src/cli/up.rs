@@ -146,7 +146,7 @@ pub fn run(args: UpArgs) -> Result<()> {
         .context("installing the Ctrl-C handler")?;
 
     let mut services: Vec<Service> = Vec::new();
-    for name in &config.up.services {
+    for name in &config.up_services() {
         match spawn(&exe, name, &args.config) {
             Ok(child) => services.push(Service {
                 name: name.clone(),
@@ -231,7 +231,7 @@ pub fn run(args: UpArgs) -> Result<()> {
     // beside the team link.
     if let Some(path) = &config.record.mcap {
         let dir = &config.backend.state_dir;
-        match doorslam_hil::ros2_record::record(dir, Some(path)) {
+        match doorslam_ros2::record::record(dir, Some(path)) {
             Ok(s) => eprintln!(
                 "[up] recorded {} messages of {} into {}",
                 s.messages.values().sum::<u64>(),

@@ -95,6 +95,9 @@ pub struct DemoConfig {
     /// `--insecure`: plain TCP between robots, open to any host on the network, instead of
     /// the default mutual TLS and access control.
     pub insecure: bool,
+    /// `--ros2`: every robot publishes its state as ROS 2 topics (`[ros2] enabled`), its
+    /// session listening on [`ros2_endpoint`].
+    pub ros2: bool,
 }
 
 impl DemoConfig {
@@ -120,6 +123,7 @@ impl DemoConfig {
             base_port: 17_447,
             robot_toml_extra: String::new(),
             insecure: false,
+            ros2: false,
         }
     }
 
@@ -524,6 +528,26 @@ pub fn endpoint(address: &str, port: u16, tls: bool) -> String {
     format!("{}/{address}:{port}", if tls { "tls" } else { "tcp" })
 }
 
+/// Ports of a robot's ROS 2 session above its team link's: 7547 on a robot's own address,
+/// `base_port + 100 + r` on the loopback (a team of at most 26 never reaches them).
+pub const ROS2_PORT_OFFSET: u16 = 100;
+
+/// The plain-TCP endpoint of the ROS 2 session (`doorslam service ros2`) of the robot whose
+/// team link listens on `team_endpoint`: the same address, [`ROS2_PORT_OFFSET`] ports up.
+/// Not TLS: a laptop's `rmw_zenohd` connects to it with rmw_zenoh's default settings.
+pub fn ros2_endpoint(team_endpoint: &str) -> String {
+    let address = team_endpoint
+        .split_once('/')
+        .map_or(team_endpoint, |(_, a)| a);
+    match address.rsplit_once(':') {
+        Some((host, port)) => {
+            let port = port.parse::<u16>().unwrap_or(7447);
+            format!("tcp/{host}:{}", port.saturating_add(ROS2_PORT_OFFSET))
+        }
+        None => format!("tcp/{address}:{}", 7447 + ROS2_PORT_OFFSET),
+    }
+}
+
 /// The `robot.toml` of robot `r`.
 pub fn robot_toml(
     config: &DemoConfig,
@@ -628,6 +652,31 @@ robots = [{roster}]
 services = ["backend", "frontend", "place-recognition", "team", "camera"]
 "#
     );
+    if config.ros2 {
+        // `up` adds the `ros2` service; no router on the simulated robot: a laptop's
+        // `rmw_zenohd` connects to this endpoint instead.
+        let _ = write!(
+            t,
+            r#"
+[ros2]
+enabled = true
+listen = ["{}"]
+connect = []
+"#,
+            ros2_endpoint(&addresses[r])
+        );
+    }
     t.push_str(&config.robot_toml_extra);
     t
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_ros2_endpoint_is_the_team_address_a_hundred_ports_up_in_plain_tcp() {
+        assert_eq!(ros2_endpoint("tls/10.77.0.2:7447"), "tcp/10.77.0.2:7547");
+        assert_eq!(ros2_endpoint("tcp/127.0.0.1:17449"), "tcp/127.0.0.1:17549");
+    }
 }

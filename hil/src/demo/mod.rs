@@ -20,7 +20,7 @@
 //! 5. **Back at base**: after the flight every pair is put in range (the drones landed
 //!    together) until every robot's distributed back-end has converged (or `settle_s`).
 //! 6. **Report** ([`report`]): `report.md`, `summary.json`, plots as PNG and SVG; then the
-//!    run as ROS 2 messages, `run.mcap` ([`crate::ros2_record`]).
+//!    run as ROS 2 messages, `run.mcap` (`doorslam_ros2::record`).
 //!
 //! Nothing here stands in for a service: if one is missing, its process fails, `up`
 //! gives up on it and the demo stops naming it.
@@ -125,6 +125,8 @@ pub struct RunLog {
     pub starts: Vec<u32>,
     /// How the robots' link was secured.
     pub security: SecuritySummary,
+    /// `--ros2`: each robot's ROS 2 endpoint (plain TCP), in robot order.
+    pub ros2_endpoints: Vec<String>,
 }
 
 /// Where one `--kill` is in the run.
@@ -295,6 +297,23 @@ pub fn run(
             None => config::endpoint("127.0.0.1", config.base_port + i as u16, tls.is_some()),
         })
         .collect();
+    if config.ros2 {
+        log.ros2_endpoints = addresses.iter().map(|a| config::ros2_endpoint(a)).collect();
+        // In namespaces the host joins the robots' bridge, so a router here reaches them.
+        let host = match &net {
+            Some(net) => format!(" (this host is {} on their network)", net.attach_host()?),
+            None => String::new(),
+        };
+        let line = format!(
+            "ROS 2: the robots publish on {}{host}: connect a router to them (README, ROS 2)",
+            log.ros2_endpoints.join(", ")
+        );
+        snap.note = Some(match snap.note.take() {
+            Some(n) => format!("{n}; {line}"),
+            None => line,
+        });
+        progress(&snap);
+    }
 
     // 3. The robots, on one clock that starts once they had time to open their services.
     let start_unix_ms = config::unix_ms() + (config.startup_s * 1e3) as u64;
@@ -530,7 +549,7 @@ pub fn run(
     progress(&snap);
     let summary = report::write(config, &world, &log)?;
     // Every run also as ROS 2 messages, for ros2 bag / Foxglove (`<out>/run.mcap`).
-    crate::ros2_record::record(out, None)
+    doorslam_ros2::record::record(out, None)
         .map_err(|e| DemoError::Report(format!("run.mcap: {e}")))?;
     Ok(summary)
 }

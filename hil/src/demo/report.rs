@@ -201,6 +201,9 @@ pub struct Summary {
     pub kills: Vec<KillSummary>,
     /// How the team link was secured (mutual TLS + access control unless `--insecure`).
     pub security: super::SecuritySummary,
+    /// `--ros2`: every robot published its state as ROS 2 topics, on `ros2_endpoints`.
+    pub ros2: bool,
+    pub ros2_endpoints: Vec<String>,
     /// Whether every robot kept up with its camera on this machine.
     pub realtime: super::realtime::Realtime,
     /// Where the CPU went (robots, per process, demo, the machine).
@@ -694,6 +697,8 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
         kill: kills.first().cloned(),
         kills,
         security: log.security.clone(),
+        ros2: !log.ros2_endpoints.is_empty(),
+        ros2_endpoints: log.ros2_endpoints.clone(),
         bandwidth,
         timeline: log.timeline.clone(),
         durations: Durations {

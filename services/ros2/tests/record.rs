@@ -10,14 +10,15 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use doorslam_hil::ros2_record::{read_tum, record, reference_python, TEAM_FRAME};
+use doorslam_ros2::record::{read_tum, record, TEAM_FRAME};
+use doorslam_ros2::reference_python;
 use doorslam_ros2_wire::msgs::{
     Header, Path as RosPath, Point, Pose, PoseStamped, Quaternion, Time,
 };
 use doorslam_ros2_wire::{types, RosMessage};
 
 fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
 
 /// A copy of the fixture run folder (the record writes into it).

@@ -11,11 +11,12 @@ use std::process::{Command, Stdio};
 use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
 
-use doorslam_hil::ros2_live::{replay, ReplayOptions};
-use doorslam_hil::ros2_record::{reference_python, run_messages};
+use doorslam_ros2::record::run_messages;
+use doorslam_ros2::reference_python;
+use doorslam_ros2::replay::{replay, ReplayOptions};
 
 fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
 
 fn free_port() -> u16 {
