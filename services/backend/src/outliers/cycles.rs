@@ -19,6 +19,10 @@
 //! (repeated until nothing changes). Between candidates of one pair that pass, only a set
 //! that is pairwise consistent is kept (most consistent cycles first).
 //!
+//! The same cycles also check pairs that do hold a clique: three robots whose three cliques
+//! contradict each other have one pair set aside, by trust rather than size
+//! ([`contradicted_pairs`]).
+//!
 //! Nothing here needs more than what PCM already has: every robot's odometry and the
 //! closures. In the distributed back-end the robot that solves the separator graph holds
 //! both (the condensed graphs), so the check costs no message.
