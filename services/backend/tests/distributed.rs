@@ -382,6 +382,20 @@ fn poses_out_of_order_or_twice_and_foreign_edges_are_refused_by_name() {
     assert!(a
         .add_closure(k(0, 5), k(1, 0), SE3::identity(), bad)
         .is_err());
+    // Positive definite but no measurement: beyond a micrometre's information.
+    let absurd = matrix_from_upper(&upper_from_diagonal([1e4, 1e4, 1e4, 1e2, 1e2, 1e13]));
+    let e = a
+        .add_closure(k(0, 5), k(1, 0), SE3::identity(), absurd)
+        .unwrap_err();
+    assert!(
+        matches!(e, DpgoError::ImplausibleInformation { .. }) && e.to_string().contains("a5"),
+        "{e}"
+    );
+    assert_eq!(
+        a.neighbors().count(),
+        0,
+        "a refused closure made a neighbour"
+    );
 }
 
 #[test]

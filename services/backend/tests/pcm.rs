@@ -438,3 +438,69 @@ fn a_lone_closure_is_checked_through_a_third_robot() {
         vec![(key::symbol(0, 15).unwrap(), key::symbol(1, 17).unwrap())]
     );
 }
+
+/// Robot c closes closures with a and with b, three times as many as the true a–b ones and
+/// each set exactly consistent, but lying: robot `liar` (a or b) displaced by 4 m and 0.5
+/// rad in the world. Pairwise PCM takes all three cliques, so the a–c–b path outweighs
+/// the true a–b closures; the contradicted triangle sets aside one of c's pairs instead
+/// (the one not touching a, the lowest robot: c may misplace itself, never b relative to
+/// a).
+#[test]
+fn a_contradicted_triangle_does_not_go_to_the_larger_closure_sets() {
+    let true_ab = [(0, 3, 1, 4), (0, 12, 1, 11), (0, 20, 1, 21)];
+    let with_c: Vec<(u8, u64, u8, u64)> = (0..9u64)
+        .flat_map(|m| [(0, 2 + 3 * m, 2, 1 + 3 * m), (1, 1 + 3 * m, 2, 2 + 3 * m)])
+        .collect();
+    let w = Isometry3::from_parts(
+        Translation3::new(4.0, -2.0, 0.5),
+        UnitQuaternion::from_euler_angles(0.0, 0.0, 0.5),
+    );
+    let kept = |liar: Option<u8>, cycles: bool| {
+        let mut g = three_robots(&true_ab, &[]);
+        // The same circles as `three_robots`, for c's measurements.
+        let truth = |r: u8, i: u64| {
+            let a = i as f64 * 0.2;
+            let t = Isometry3::from_parts(
+                Translation3::new(10.0 * a.cos(), 10.0 * a.sin(), r as f64),
+                UnitQuaternion::from_euler_angles(0.0, 0.0, a + 0.1 * r as f64),
+            );
+            if Some(r) == liar {
+                w * t
+            } else {
+                t
+            }
+        };
+        let info = g.edges()[0].information;
+        for &(ra, ia, rb, ib) in &with_c {
+            let z = truth(ra, ia).inverse() * truth(rb, ib);
+            let (a, b) = (
+                g.index_of(key::symbol(ra, ia).unwrap()).unwrap(),
+                g.index_of(key::symbol(rb, ib).unwrap()).unwrap(),
+            );
+            g.add_edge(a, b, z, info).unwrap();
+        }
+        let mut pcm = Pcm::new(0.99, Scope::InterRobot).unwrap();
+        pcm.cycles = cycles;
+        let s = pcm.run(&g).unwrap();
+        let count = |x: u8, y: u8| {
+            s.inliers
+                .iter()
+                .filter(|(u, v)| {
+                    let mut p = [key::robot(*u).unwrap(), key::robot(*v).unwrap()];
+                    p.sort_unstable();
+                    p == [x, y]
+                })
+                .count()
+        };
+        ([count(0, 1), count(0, 2), count(1, 2)], s.set_aside)
+    };
+    // Honest: every closure kept, with or without cycles.
+    assert_eq!(kept(None, false), ([3, 9, 9], 0));
+    assert_eq!(kept(None, true), ([3, 9, 9], 0));
+    for liar in [0, 1] {
+        // Plain PCM keeps the lie: each set is consistent in itself.
+        assert_eq!(kept(Some(liar), false), ([3, 9, 9], 0), "liar {liar}");
+        // The triangle contradicts: b–c goes, a–b stays.
+        assert_eq!(kept(Some(liar), true), ([3, 9, 0], 9), "liar {liar}");
+    }
+}

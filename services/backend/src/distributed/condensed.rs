@@ -517,9 +517,19 @@ pub(crate) fn solve_interior(
 }
 
 /// Whether an edge list of a received graph is well-formed for `origin`: super-edges and
-/// loops between its own poses, closures from it to a higher robot.
+/// loops between its own poses, closures from it to a higher robot, informations within
+/// [`super::MAX_INFORMATION`] (the wire already refuses one that is not positive definite).
 pub(crate) fn check_graph(origin: u8, edges: &[CondensedEdge]) -> Result<(), String> {
     for e in edges {
+        let largest = e.information.diagonal().max();
+        if largest > super::MAX_INFORMATION {
+            return Err(format!(
+                "edge {} -> {}: information {largest:e} beyond {:e}",
+                key::label(e.a),
+                key::label(e.b),
+                super::MAX_INFORMATION
+            ));
+        }
         let (ra, rb) = (key::robot(e.a), key::robot(e.b));
         let ok = match (ra, rb) {
             (Some(a), Some(b)) if a == origin && b == origin => e.a != e.b,

@@ -76,6 +76,13 @@ use doorslam_ipc::wire::{
 
 use local::{Fixed, OwnClosure, OwnEdge};
 
+/// The largest diagonal entry of an information matrix the distributed back-end takes (own
+/// edges, closures, a teammate's condensed graph): a standard deviation of a micrometre or
+/// a microradian, finer than any sensor measures. A larger one is no measurement, and next
+/// to real ones (10²–10⁶) it leaves the team's solve a system that does not factor: one
+/// teammate's edge of information 10³⁰ would stop the team's solver at every step.
+pub const MAX_INFORMATION: f64 = 1e12;
+
 /// Failures of the distributed back-end.
 #[derive(Debug, thiserror::Error)]
 pub enum DpgoError {
@@ -99,6 +106,12 @@ pub enum DpgoError {
         to: String,
         #[source]
         source: InformationError,
+    },
+    #[error("edge {from} -> {to}: information {value:e} on the diagonal, beyond {MAX_INFORMATION:e} (a micrometre / microradian)")]
+    ImplausibleInformation {
+        from: String,
+        to: String,
+        value: f64,
     },
     #[error(transparent)]
     Edge(#[from] EdgeError),
@@ -475,13 +488,21 @@ impl Agent {
     }
 
     fn checked_information(a: u64, b: u64, information: &TangentMatrix) -> Result<(), DpgoError> {
-        check_information(information, 6, InformationCheck::PositiveDefinite).map_err(|source| {
-            DpgoError::Information {
+        check_information(information, 6, InformationCheck::PositiveDefinite).map_err(
+            |source| DpgoError::Information {
                 from: key::label(a),
                 to: key::label(b),
                 source,
-            }
-        })
+            },
+        )?;
+        match information.diagonal().max() {
+            value if value > MAX_INFORMATION => Err(DpgoError::ImplausibleInformation {
+                from: key::label(a),
+                to: key::label(b),
+                value,
+            }),
+            _ => Ok(()),
+        }
     }
 
     /// Adds an edge between two of the robot's poses (odometry or an intra-robot closure):

@@ -1008,6 +1008,22 @@ impl Agent {
                     self.stats.refused += 1;
                     return Err(refuse(reason));
                 }
+                // A relay speaks for the robots that route through it, never for one this
+                // robot hears itself on a route that does not pass through the relay: that
+                // robot's graph comes from it (else any teammate could replace a neighbour's
+                // trajectory with one of its making, under a newer version).
+                let direct = self
+                    .neighbors
+                    .get(&g.origin)
+                    .filter(|n| n.present)
+                    .and_then(|n| n.team.route.as_ref());
+                if g.origin != neighbor && direct.is_some_and(|r| !r.path.contains(&neighbor)) {
+                    self.stats.refused += 1;
+                    return Err(refuse(format!(
+                        "a graph of robot {}, which does not route through robot {neighbor}",
+                        g.origin
+                    )));
+                }
                 if g.removed
                     .iter()
                     .any(|(a, _)| key::robot(*a) != Some(g.origin))
@@ -1054,11 +1070,15 @@ impl Agent {
                 {
                     l.graphs_held.insert(g.origin, held.clone());
                 }
-                if self
-                    .team
-                    .graphs
-                    .get(&g.origin)
-                    .is_some_and(|x| x.version >= held.version)
+                // A graph from its own robot is that robot's latest (its link delivers in
+                // order) and replaces whatever came through others, whatever the version: a
+                // relay's copy under a made-up newer version must not outlive it.
+                if g.origin != neighbor
+                    && self
+                        .team
+                        .graphs
+                        .get(&g.origin)
+                        .is_some_and(|x| x.version >= held.version)
                 {
                     // Newer from elsewhere already.
                     self.stats.ignored_stale += 1;

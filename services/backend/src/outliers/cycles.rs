@@ -19,6 +19,10 @@
 //! (repeated until nothing changes). Between candidates of one pair that pass, only a set
 //! that is pairwise consistent is kept (most consistent cycles first).
 //!
+//! The same cycles also check pairs that do hold a clique: three robots whose three cliques
+//! contradict each other have one pair set aside, by trust rather than size
+//! ([`contradicted_pairs`]).
+//!
 //! Nothing here needs more than what PCM already has: every robot's odometry and the
 //! closures. In the distributed back-end the robot that solves the separator graph holds
 //! both (the condensed graphs), so the check costs no message.
@@ -34,7 +38,8 @@ use doorslam_geometry::{LieGroup, Tangent};
 /// Confirmed closures nearest to a candidate's end, per side and third robot.
 pub const NEAREST: usize = 8;
 
-type Pair = (Option<u8>, Option<u8>);
+/// A robot pair, lower robot first.
+pub type Pair = (Option<u8>, Option<u8>);
 
 /// Squared Mahalanobis norm of the error of the cycle `F₁ ⋯ Fₙ` (each factor a relative
 /// pose with its covariance, right perturbations), or `None` if the covariance of the
@@ -159,6 +164,94 @@ fn cycles_of(
     (consistent, checked)
 }
 
+/// Robot pairs whose accepted clique a 3-robot cycle contradicts and that are set aside.
+///
+/// Three robots whose three pairs each hold an accepted clique close cycles through all
+/// three; when most of those cycles fail, one pair's clique is wrong, and geometry alone
+/// cannot say which. Size must not decide: a teammate that controls its own trajectory
+/// (a valid certificate, a hostile or broken robot) can make its closures with two others
+/// as many and as mutually consistent as it likes, so the sets of closures through it would
+/// outweigh the true closures between the other two and move one relative to the other.
+/// What it can always do — lie about where it is itself — a set-aside pair still lets it
+/// do; what it must not do is bend the others.
+///
+/// So a contradicted triangle is broken by setting aside one pair, chosen by trust, not
+/// size: first a pair no consistent triangle corroborates, in the order of the robot it
+/// does not touch (lowest first); all corroborated, the one not touching the triangle's
+/// lowest robot. Triangles are taken in the order of their robots, so those of the team's
+/// lowest robot come first — in the distributed back-end the robot that runs PCM (the
+/// team's solver, whose own data it knows to be its own): for it the pair of the two
+/// others goes, and with one hostile robot among them that pair is one of the hostile
+/// robot's, whichever side it lies about. The others keep their closures with the lowest
+/// robot, so each is placed by its own evidence with it.
+///
+/// The limit: with one hostile robot among three robots none of which is the lowest of a
+/// triangle the team's lowest robot is part of, and no consistent triangle to tell the
+/// honest pair, the pair of the two higher robots goes — honest if the hostile one is
+/// the lowest of the three.
+pub fn contradicted_pairs(
+    problems: &BTreeMap<Pair, PairProblem>,
+    odo: &Odometry,
+    gamma: f64,
+    min_clique: usize,
+) -> BTreeSet<Pair> {
+    let accepted: BTreeMap<Pair, Vec<&Closure>> = problems
+        .iter()
+        .filter(|(k, p)| k.0 != k.1 && !p.accepted(min_clique).is_empty())
+        .map(|(k, p)| {
+            let kept = p.accepted(min_clique).iter().map(|&i| &p.closures[i]);
+            (*k, kept.collect())
+        })
+        .collect();
+    let robots: BTreeSet<Option<u8>> = accepted.keys().flat_map(|(a, b)| [*a, *b]).collect();
+    let robots: Vec<Option<u8>> = robots.into_iter().collect();
+    // Every triangle of accepted pairs, in robot order, with its verdict.
+    let mut triangles: Vec<([Option<u8>; 3], bool)> = Vec::new();
+    for (i, &r0) in robots.iter().enumerate() {
+        for (j, &r1) in robots.iter().enumerate().skip(i + 1) {
+            for &r2 in robots.iter().skip(j + 1) {
+                let (p01, p02, p12) = (pair_of(r0, r1), pair_of(r0, r2), pair_of(r1, r2));
+                let (Some(c01), Some(c02), Some(c12)) =
+                    (accepted.get(&p01), accepted.get(&p02), accepted.get(&p12))
+                else {
+                    continue;
+                };
+                // The closures of the pair of the two higher robots, through the lowest.
+                let view = BTreeMap::from([(p01, c01.clone()), (p02, c02.clone())]);
+                let within = BTreeSet::from([r0, r1, r2]);
+                let (mut ok, mut all) = (0, 0);
+                for c0 in c12 {
+                    let (o, a) = cycles_of(odo, c0, &view, &within, gamma);
+                    ok += o;
+                    all += a;
+                }
+                if all > 0 {
+                    triangles.push(([r0, r1, r2], 2 * ok > all));
+                }
+            }
+        }
+    }
+    let corroborated: BTreeSet<Pair> = triangles
+        .iter()
+        .filter(|(_, consistent)| *consistent)
+        .flat_map(|([r0, r1, r2], _)| [pair_of(*r0, *r1), pair_of(*r0, *r2), pair_of(*r1, *r2)])
+        .collect();
+    let mut aside = BTreeSet::new();
+    for ([r0, r1, r2], _) in triangles.iter().filter(|(_, consistent)| !consistent) {
+        // Opposite r0, r1, r2 in turn.
+        let pairs = [pair_of(*r1, *r2), pair_of(*r0, *r2), pair_of(*r0, *r1)];
+        if pairs.iter().any(|p| aside.contains(p)) {
+            continue;
+        }
+        let pick = pairs
+            .iter()
+            .find(|p| !corroborated.contains(*p))
+            .unwrap_or(&pairs[0]);
+        aside.insert(*pick);
+    }
+    aside
+}
+
 /// Closures of the pairs PCM left without an accepted clique that 3-robot cycles confirm:
 /// (pair, index into its closures), with the number of consistent cycles each passed.
 pub fn confirm_through_cycles(
@@ -166,11 +259,12 @@ pub fn confirm_through_cycles(
     odo: &Odometry,
     gamma: f64,
     min_clique: usize,
+    aside: &BTreeSet<Pair>,
 ) -> BTreeMap<Pair, Vec<usize>> {
     let robots: BTreeSet<Option<u8>> = problems.keys().flat_map(|(a, b)| [*a, *b]).collect();
     let mut confirmed: BTreeMap<Pair, Vec<usize>> = problems
         .iter()
-        .filter(|(_, p)| !p.accepted(min_clique).is_empty())
+        .filter(|(k, p)| !p.accepted(min_clique).is_empty() && !aside.contains(k))
         .map(|(k, p)| (*k, p.accepted(min_clique).to_vec()))
         .collect();
     let mut added: BTreeMap<Pair, Vec<usize>> = BTreeMap::new();
@@ -181,7 +275,8 @@ pub fn confirm_through_cycles(
             .collect();
         let mut progress = BTreeMap::new();
         for (pair, p) in problems {
-            if confirmed.contains_key(pair) || pair.0 == pair.1 {
+            // A pair set aside by a contradicted triangle stays aside.
+            if confirmed.contains_key(pair) || pair.0 == pair.1 || aside.contains(pair) {
                 continue;
             }
             // Candidates that pass, most consistent cycles first.

@@ -287,7 +287,8 @@ pub struct Pcm {
     /// robots is consistent with itself by definition and proves nothing; it is kept
     /// waiting until a second, consistent one arrives).
     pub min_clique: usize,
-    /// Check the closures of pairs left without an accepted clique through 3-robot cycles
+    /// Check the closures of pairs left without an accepted clique through 3-robot cycles,
+    /// and set aside the clique of a pair a triangle of accepted cliques contradicts
     /// ([`super::cycles`]); off by default (plain PCM).
     pub cycles: bool,
     pub problems: BTreeMap<(Option<u8>, Option<u8>), PairProblem>,
@@ -329,6 +330,9 @@ pub struct PcmSummary {
     pub clique_size: usize,
     /// Of the kept closures, those confirmed through 3-robot cycles ([`Pcm::cycles`]).
     pub cycle_confirmed: usize,
+    /// Closures of accepted cliques set aside because a 3-robot cycle contradicts their
+    /// pair ([`super::cycles::contradicted_pairs`]; with [`Pcm::cycles`]): not kept.
+    pub set_aside: usize,
     pub exact: bool,
     pub time_s: f64,
 }
@@ -421,26 +425,38 @@ impl Pcm {
             inliers: Vec::new(),
             clique_size: 0,
             cycle_confirmed: 0,
+            set_aside: 0,
             exact: true,
             time_s: 0.0,
         };
-        for p in self.problems.values() {
+        let cycles = self.cycles && self.scope == Scope::InterRobot;
+        let aside = if cycles {
+            super::cycles::contradicted_pairs(&self.problems, &odo, self.gamma, self.min_clique)
+        } else {
+            Default::default()
+        };
+        for (pair, p) in &self.problems {
             s.closures += p.closures.len();
             s.consistent_pairs += p.consistent_pairs();
-            s.clique_size += p.accepted(self.min_clique).len();
             s.exact &= p.exact();
+            if aside.contains(pair) {
+                s.set_aside += p.accepted(self.min_clique).len();
+                continue;
+            }
+            s.clique_size += p.accepted(self.min_clique).len();
             s.inliers.extend(
                 p.accepted(self.min_clique)
                     .iter()
                     .map(|&k| (p.closures[k].u, p.closures[k].v)),
             );
         }
-        if self.cycles && self.scope == Scope::InterRobot {
+        if cycles {
             let added = super::cycles::confirm_through_cycles(
                 &self.problems,
                 &odo,
                 self.gamma,
                 self.min_clique,
+                &aside,
             );
             for (pair, kept) in added {
                 let p = &self.problems[&pair];

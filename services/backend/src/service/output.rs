@@ -15,6 +15,7 @@
 //!
 //! `doorslam eval ate team_estimate.tum groundtruth.tum --format tum` compares them.
 
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -111,6 +112,8 @@ pub struct TeamStatus {
     pub steps: u64,
     pub updates: u64,
     pub relay: BridgeStats,
+    /// `relay.refused` per peer robot (key letter) and message kind.
+    pub refused_from: BTreeMap<String, BTreeMap<String, u64>>,
 }
 
 /// A robot's key letter (`a` for 0): the label of its keyframe 0 without the index.
@@ -166,6 +169,14 @@ impl Outputs {
                 steps: stats.steps,
                 updates: stats.updates,
                 relay: b.stats(),
+                refused_from: b
+                    .refused_from()
+                    .iter()
+                    .map(|(r, kinds)| {
+                        let kinds = kinds.iter().map(|(k, n)| (k.to_string(), *n));
+                        (letter(*r), kinds.collect())
+                    })
+                    .collect(),
             }
         });
         let report = state.report();

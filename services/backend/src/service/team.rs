@@ -85,6 +85,9 @@ pub struct TeamBridge {
     /// Something changed since the agent last stepped.
     dirty: bool,
     stats: BridgeStats,
+    /// Messages the agent refused, per peer robot and message kind (`BridgeStats::refused`
+    /// split: which teammate sent what that was refused).
+    refused_from: BTreeMap<u8, BTreeMap<&'static str, u64>>,
     /// The origin of the agent's clock (its timeouts are in seconds of it).
     started: Instant,
 }
@@ -105,6 +108,7 @@ impl TeamBridge {
             team_epoch: None,
             dirty: true,
             stats: BridgeStats::default(),
+            refused_from: BTreeMap::new(),
             started: Instant::now(),
         }
     }
@@ -120,6 +124,10 @@ impl TeamBridge {
     }
     pub fn agent_stats(&self) -> AgentStats {
         self.agent.stats()
+    }
+    /// Messages refused per peer robot and kind (`separator_graph`, `route`, ...).
+    pub fn refused_from(&self) -> &BTreeMap<u8, BTreeMap<&'static str, u64>> {
+        &self.refused_from
     }
     /// Peers the team link reports present.
     pub fn present(&self) -> impl Iterator<Item = u8> + '_ {
@@ -232,6 +240,12 @@ impl TeamBridge {
                 self.dirty = true;
                 self.agent.receive(r, &message).map_err(|source| {
                     self.stats.refused += 1;
+                    *self
+                        .refused_from
+                        .entry(r)
+                        .or_default()
+                        .entry(message.kind().name())
+                        .or_default() += 1;
                     BridgeError::Refused { robot: r, source }
                 })?;
                 Ok(false)
