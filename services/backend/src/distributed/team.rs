@@ -28,6 +28,14 @@
 //! child's subtree that moved beyond `send_pose` from what the child holds (all of them
 //! when the frame changed), and relays forward them down.
 //!
+//! **Standby copy** (`SeparatorGraph` downwards, once): the solver sends its lowest child
+//! its own graph (and the copies it holds of solvers before it) as it sends graphs up. A
+//! copy travels up from whoever holds it once its origin is neither on the path to the
+//! solver nor in the subtree, so when the solver leaves, the robot that takes over solves
+//! with the leaver's trajectory and every closure it held (the lowest key, and so the
+//! frame, stay the leaver's first pose); the other robots' graphs come from their owners.
+//! When the solver returns it is the root again and the copies stay where they are.
+//!
 //! Every message is acknowledged per kind, resent when lost; a neighbour that restarts
 //! (a higher epoch) is taken to hold nothing. A robot out of range keeps its last
 //! separators; the solver keeps the graphs of robots that left.
@@ -113,6 +121,12 @@ pub(crate) struct TeamState {
     /// `condensed::SeparatorSolve`), and that solve's summary.
     pub stiffness: BTreeMap<u64, doorslam_geometry::TangentMatrix>,
     pub last_solve: Option<crate::solver::Summary>,
+    /// Origins whose graph this robot holds as a standby copy: it came from a robot that
+    /// does not relay it upwards (the solver replicating its own graph, or a copy passed
+    /// up after that solver left). Copies of robots that are neither on this robot's path
+    /// to the solver nor in its subtree travel up, so the next solver keeps their
+    /// trajectories and closures ([`Agent::upward_origins`]).
+    pub standby: BTreeSet<u8>,
 }
 
 /// What a robot knows of one neighbour for the condensed method.
@@ -388,6 +402,41 @@ impl Agent {
             .fold(1u64 << self.robot, |s, c| s | c)
     }
 
+    /// The origins whose graphs go to the parent: the subtree's, and the standby copies
+    /// of robots that are not on the path to the solver (it left, or it is away) nor in
+    /// the subtree (their owners send those themselves).
+    fn upward_origins(&self, subtree: u64) -> Vec<u8> {
+        let path = &self.team.path;
+        let copies = self
+            .team
+            .standby
+            .iter()
+            .copied()
+            .filter(|o| !path.contains(o) && subtree & (1u64 << o) == 0);
+        members(subtree).chain(copies).collect()
+    }
+
+    /// The solver's standby: its lowest child, which gets a copy of the solver's own graph
+    /// and of the standby copies it holds, so that if the solver leaves, the robot that
+    /// takes over (or the one the standby routes to) still has every trajectory and
+    /// closure the solver had, and solves in the same frame (the lowest key is still the
+    /// old solver's first pose). Graphs of the other robots need no copy: their owners
+    /// send them to the new solver.
+    fn standby_child(&self, children: &BTreeMap<u8, u64>) -> Option<u8> {
+        (self.root() == self.robot)
+            .then(|| children.keys().next().copied())
+            .flatten()
+    }
+
+    /// What the solver copies to its standby child `child` (subtree `bits`): its own graph
+    /// and the standby copies it holds, not those of the child's subtree.
+    fn replicated_origins(&self, bits: u64) -> Vec<u8> {
+        std::iter::once(self.robot)
+            .chain(self.team.standby.iter().copied())
+            .filter(|o| bits & (1u64 << o) == 0)
+            .collect()
+    }
+
     /// The best route: lowest root, then fewest hops, then lowest next hop.
     fn best_path(&self) -> Vec<u8> {
         let mut best = ((self.robot, 1usize, self.robot), vec![self.robot]);
@@ -560,13 +609,18 @@ impl Agent {
         let Some(own) = self.team.solutions.get(&self.robot) else {
             return false;
         };
+        // The standby copies are the lower solver's inputs as it sent them: it solved with
+        // them, and sends no estimates of its own robots.
         own.anchor < self.robot
-            && versions.iter().all(|(r, v)| {
-                self.team
-                    .solutions
-                    .get(r)
-                    .is_some_and(|s| s.version == *v && s.anchor == own.anchor)
-            })
+            && versions
+                .iter()
+                .filter(|(r, _)| !self.team.standby.contains(r))
+                .all(|(r, v)| {
+                    self.team
+                        .solutions
+                        .get(r)
+                        .is_some_and(|s| s.version == *v && s.anchor == own.anchor)
+                })
     }
 
     /// Where the separators are now: at the team's solution for those it names; a separator
@@ -698,6 +752,7 @@ impl Agent {
         let children = self.children();
         let subtree = self.subtree();
         let parent = self.parent();
+        let standby = self.standby_child(&children);
         self.neighbors.iter().all(|(&id, n)| {
             if !n.present {
                 return true;
@@ -712,7 +767,7 @@ impl Agent {
                 return false;
             }
             if Some(id) == parent {
-                let graphs_up = members(subtree).all(|o| {
+                let graphs_up = self.upward_origins(subtree).into_iter().all(|o| {
                     self.team.graphs.get(&o).is_none_or(|h| {
                         l.graphs_held
                             .get(&o)
@@ -738,6 +793,19 @@ impl Agent {
             if let Some(&bits) = children.get(&id) {
                 if !l.est_out.is_empty() {
                     return false;
+                }
+                if standby == Some(id) {
+                    let copied = self.replicated_origins(bits).into_iter().all(|o| {
+                        self.team.graphs.get(&o).is_none_or(|h| {
+                            l.graphs_held
+                                .get(&o)
+                                .is_some_and(|p| p.version >= h.version)
+                        })
+                    });
+                    if !(copied && l.graph_out.is_empty()) {
+                        tracing::trace!(robot = self.robot, standby = id, "copy not held");
+                        return false;
+                    }
                 }
                 for r in members(bits) {
                     if let Some(s) = self.team.solutions.get(&r) {
@@ -850,21 +918,30 @@ impl Agent {
         let n = self.neighbors.get(&neighbor).map(|n| &n.team);
         // Graphs of the subtree, to the parent, once the route held for a step: while
         // routes are being explored (the solver left, robots try each other's stale
-        // routes) a graph sent to a parent of the moment is sent again to the next.
+        // routes) a graph sent to a parent of the moment is sent again to the next. The
+        // solver copies its own graph to its standby child the same way.
         let mut graphs = Vec::new();
         let settled = self.stats.steps > self.team.path_changed_at;
-        if Some(neighbor) == parent && settled {
-            for o in members(subtree) {
-                let Some(held) = self.team.graphs.get(&o) else {
-                    continue;
-                };
-                let view = n.and_then(|l| l.graph_view(o));
-                if view.is_some_and(|v| v.version >= held.version) {
-                    continue;
-                }
-                let base = n.and_then(|l| l.graph_base(o));
-                graphs.push((o, held.clone(), base.cloned()));
+        let standby = self.standby_child(&children);
+        let origins = if !settled {
+            Vec::new()
+        } else if Some(neighbor) == parent {
+            self.upward_origins(subtree)
+        } else if standby == Some(neighbor) {
+            self.replicated_origins(children.get(&neighbor).copied().unwrap_or(0))
+        } else {
+            Vec::new()
+        };
+        for o in origins {
+            let Some(held) = self.team.graphs.get(&o) else {
+                continue;
+            };
+            let view = n.and_then(|l| l.graph_view(o));
+            if view.is_some_and(|v| v.version >= held.version) {
+                continue;
             }
+            let base = n.and_then(|l| l.graph_base(o));
+            graphs.push((o, held.clone(), base.cloned()));
         }
         // Estimates of the child's subtree, to a child.
         let mut estimates = Vec::new();
@@ -1046,6 +1123,10 @@ impl Agent {
                     version: g.version,
                     edges: Arc::new(edges),
                 };
+                // A graph the sender does not relay upwards (not its own nor of its
+                // subtree) is a standby copy here.
+                let relayed = l.route.as_ref().map_or(0, |r| r.subtree) | (1u64 << neighbor);
+                let copy = relayed & (1u64 << g.origin) == 0;
                 l.graphs_rx.insert(g.origin, held.clone());
                 // The sender holds it: it never needs it back.
                 if l.graphs_held
@@ -1065,6 +1146,11 @@ impl Agent {
                     return Ok(false);
                 }
                 self.team.graphs.insert(g.origin, held);
+                if copy {
+                    self.team.standby.insert(g.origin);
+                } else {
+                    self.team.standby.remove(&g.origin);
+                }
                 self.team.fresh = true;
                 Ok(true)
             }
