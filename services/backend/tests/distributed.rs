@@ -454,7 +454,10 @@ fn agents_of(g: &PoseGraph<SE3>) -> BTreeMap<u8, Agent> {
                     r,
                     RobotId::new(&format!("r{r}")).unwrap(),
                     1,
-                    AgentOptions::default(),
+                    AgentOptions {
+                        standby_copy: true,
+                        ..AgentOptions::default()
+                    },
                 )
             })
             .add_pose(k, g.poses()[p])

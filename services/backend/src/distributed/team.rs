@@ -28,7 +28,8 @@
 //! child's subtree that moved beyond `send_pose` from what the child holds (all of them
 //! when the frame changed), and relays forward them down.
 //!
-//! **Standby copy** (`SeparatorGraph` downwards, once): the solver sends its lowest child
+//! **Standby copy** (`SeparatorGraph` downwards; with `AgentOptions::standby_copy`): the
+//! solver sends its lowest child
 //! its own graph (and the copies it holds of solvers before it) as it sends graphs up. A
 //! copy travels up from whoever holds it once its origin is neither on the path to the
 //! solver nor in the subtree, so when the solver leaves, the robot that takes over solves
@@ -423,7 +424,7 @@ impl Agent {
     /// old solver's first pose). Graphs of the other robots need no copy: their owners
     /// send them to the new solver.
     fn standby_child(&self, children: &BTreeMap<u8, u64>) -> Option<u8> {
-        (self.root() == self.robot)
+        (self.options.standby_copy && self.root() == self.robot)
             .then(|| children.keys().next().copied())
             .flatten()
     }
@@ -1361,9 +1362,10 @@ fn alone(
 ///
 /// A robot that solved in the frame of a lower robot (its solver, now out of range) and
 /// becomes the solver of what is left holds no graph of the robot that fixed that frame,
-/// so its own solve is anchored at itself. Both solutions are optima of their problems
-/// up to the gauge; the new one is moved rigidly so that this robot's first separator
-/// stays where the old frame put it, and keeps the old anchor. Robots that come back
+/// so its own solve is anchored at itself (with the standby copy it holds that graph, and
+/// this does not happen). Both solutions are optima of their problems up to the gauge; the
+/// new one is moved rigidly onto the old by least squares over every separator both name
+/// ([`align`]), and keeps the old anchor. Robots that come back
 /// into range of the lower robot get its solution again; nobody's map jumps meanwhile.
 fn keep_frame(
     previous: Option<&Solution>,
@@ -1382,14 +1384,14 @@ fn keep_frame(
     let Some(own) = solutions.get(&robot) else {
         return solutions;
     };
-    let Some((old, new)) = own
+    let pairs: Vec<(SE3, SE3)> = own
         .separators
         .iter()
-        .find_map(|(k, x)| previous.separators.get(k).map(|o| (*o, *x)))
-    else {
+        .filter_map(|(k, x)| previous.separators.get(k).map(|o| (*o, *x)))
+        .collect();
+    let Some(t) = align(&pairs) else {
         return solutions;
     };
-    let t = old * new.inverse();
     for s in solutions.values_mut().filter(|s| s.anchor == new_anchor) {
         s.anchor = previous.anchor;
         for x in s.separators.values_mut() {
@@ -1399,10 +1401,77 @@ fn keep_frame(
     solutions
 }
 
+/// The rigid transform `T` that puts the `new` poses onto the `old` ones (pairs `(old,
+/// new)`) in least squares: minimizes `Σ ‖t_old − (R t_new + t)‖² + ‖R_old − R R_new‖²_F`,
+/// whose rotation is the projection onto SO(3) of `Σ (t_old − t̄_old)(t_new − t̄_new)ᵀ +
+/// R_old R_newᵀ` (Kabsch, with each pose's rotation as three more point pairs) and whose
+/// translation is `t̄_old − R t̄_new`. One pair gives `old new⁻¹` exactly. None without pairs.
+fn align(pairs: &[(SE3, SE3)]) -> Option<SE3> {
+    if pairs.is_empty() {
+        return None;
+    }
+    let n = pairs.len() as f64;
+    let mean = |f: &dyn Fn(&(SE3, SE3)) -> nalgebra::Vector3<f64>| {
+        pairs.iter().map(f).sum::<nalgebra::Vector3<f64>>() / n
+    };
+    let c_old = mean(&|p| p.0.translation.vector);
+    let c_new = mean(&|p| p.1.translation.vector);
+    let mut m = nalgebra::Matrix3::<f64>::zeros();
+    for (old, new) in pairs {
+        m += (old.translation.vector - c_old) * (new.translation.vector - c_new).transpose();
+        m += old.rotation.to_rotation_matrix().matrix()
+            * new.rotation.to_rotation_matrix().matrix().transpose();
+    }
+    let r = crate::init::project_so3(&m);
+    let rotation = nalgebra::UnitQuaternion::from_matrix(&r);
+    let translation = c_old - rotation * c_new;
+    Some(SE3::from_parts(translation.into(), rotation))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use doorslam_geometry::TangentMatrix;
+
+    #[test]
+    fn frames_are_aligned_over_every_shared_separator() {
+        let t = SE3::exp(&doorslam_geometry::Tangent::from_row_slice(&[
+            0.3, -0.2, 0.9, 4.0, -1.0, 2.0,
+        ]));
+        let new: Vec<SE3> = (0..4)
+            .map(|i| {
+                let f = i as f64;
+                SE3::exp(&doorslam_geometry::Tangent::from_row_slice(&[
+                    0.1 * f,
+                    0.05,
+                    -0.2 * f,
+                    3.0 * f,
+                    f * f,
+                    -f,
+                ]))
+            })
+            .collect();
+        let exact: Vec<(SE3, SE3)> = new.iter().map(|x| (t * *x, *x)).collect();
+        let got = align(&exact).unwrap();
+        assert!((got.inverse() * t).log().norm() < 1e-9, "{got} vs {t}");
+        // The first separator off by 0.1 m and 0.01 rad: aligned on it alone (as before),
+        // the frame is off by that; over all four, by a fraction of it.
+        let mut noisy = exact.clone();
+        let off = SE3::exp(&doorslam_geometry::Tangent::from_row_slice(&[
+            0.01, 0.0, 0.0, 0.1, 0.0, 0.0,
+        ]));
+        noisy[0].0 = noisy[0].0 * off;
+        let single = align(&noisy[..1]).unwrap();
+        let all = align(&noisy).unwrap();
+        let err = |x: SE3| (x.inverse() * t).log().norm();
+        assert!(err(single) > 0.05, "{}", err(single));
+        assert!(
+            err(all) < 0.5 * err(single),
+            "{} vs {}",
+            err(all),
+            err(single)
+        );
+    }
 
     fn edge(a: u64, b: u64, x: f64) -> CondensedEdge {
         CondensedEdge {
