@@ -1460,7 +1460,7 @@ mod tests {
         let off = SE3::exp(&doorslam_geometry::Tangent::from_row_slice(&[
             0.01, 0.0, 0.0, 0.1, 0.0, 0.0,
         ]));
-        noisy[0].0 = noisy[0].0 * off;
+        noisy[0].0 *= off;
         let single = align(&noisy[..1]).unwrap();
         let all = align(&noisy).unwrap();
         let err = |x: SE3| (x.inverse() * t).log().norm();
