@@ -101,6 +101,11 @@ pub struct DpgoArgs {
     /// (to measure what the updates save).
     #[arg(long)]
     pub whole_graphs: bool,
+    /// Condensed method: the solver copies its graph to a standby robot, so the robot that
+    /// takes over when it leaves keeps its trajectory and closures (costs its graph once
+    /// more).
+    #[arg(long)]
+    pub standby_copy: bool,
     /// Condensed method: condense each robot's graph once, at its odometry (the scheme
     /// before relinearization, to measure what relinearizing buys).
     #[arg(long)]
@@ -249,6 +254,7 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         agent.solver.max_iterations = n;
     }
     agent.graph_updates = !args.whole_graphs;
+    agent.standby_copy = args.standby_copy;
     if args.stream == Some(0) {
         bail!("--stream 0: at least one pose per round");
     }

@@ -468,7 +468,10 @@ fn agents_of(g: &PoseGraph<SE3>) -> BTreeMap<u8, Agent> {
                     r,
                     RobotId::new(&format!("r{r}")).unwrap(),
                     1,
-                    AgentOptions::default(),
+                    AgentOptions {
+                        standby_copy: true,
+                        ..AgentOptions::default()
+                    },
                 )
             })
             .add_pose(k, g.poses()[p])
@@ -579,9 +582,10 @@ fn the_solver_leaves_another_takes_over_and_it_comes_back() {
     assert!(agents[&0].solves_team() && !agents[&1].solves_team());
     let (got, best) = chi2_of_team(&g, &agents, &[0, 1, 2, 3]);
     assert!((got - best).abs() <= 1e-4 * best, "{got} vs {best}");
-    // Robot a, which solves the team, goes out of range: b takes over and the three others
-    // settle on the optimum of their own team, still in a's frame (b moves its solution
-    // rigidly onto where a's put its first separator: nobody's map jumps to b's frame).
+    // Robot a, which solves the team, goes out of range: b takes over with the copy of a's
+    // graph it holds as a's standby, so the three others stay at the optimum of the whole
+    // team (a's closures are not lost), in a's frame (its first pose is still the lowest
+    // key: nobody's map jumps to b's frame).
     play_round(&mut agents, Some(0));
     let mut rounds = 0;
     while !settled(&agents, Some(0)) || !agents[&1].solves_team() {
@@ -593,7 +597,7 @@ fn the_solver_leaves_another_takes_over_and_it_comes_back() {
     for r in 1..4 {
         assert_eq!(agents[&r].anchor(), 0, "robot {r} left a's frame");
     }
-    let (got, best) = chi2_of_team(&g, &agents, &[1, 2, 3]);
+    let (got, best) = chi2_of_team(&g, &agents, &[0, 1, 2, 3]);
     assert!((got - best).abs() <= 1e-4 * best, "{got} vs {best}");
     // It comes back and solves the whole team again.
     let mut rounds = 0;
@@ -607,6 +611,113 @@ fn the_solver_leaves_another_takes_over_and_it_comes_back() {
     assert_eq!(agents[&3].anchor(), 0);
     let (got, best) = chi2_of_team(&g, &agents, &[0, 1, 2, 3]);
     assert!((got - best).abs() <= 1e-4 * best, "{got} vs {best}");
+}
+
+/// RMSE (m) of the translations of `robots` at the agents' estimates to `best` (an
+/// optimum of the same graph, same gauge: `anchor`'s pose), after the rigid transform that
+/// puts the agents' `anchor` where `best` has it.
+fn ate_to(
+    best: &PoseGraph<SE3>,
+    agents: &BTreeMap<u8, Agent>,
+    robots: &[u8],
+    anchor: (u8, u64),
+) -> f64 {
+    let held = |k: u64| {
+        agents[&key::robot(k).unwrap()]
+            .estimate()
+            .find(|(x, _)| *x == k)
+    };
+    let at_best = |k: u64| best.poses()[best.index_of(k).unwrap()];
+    let (_, a) = held(anchor.1).expect("the anchor's pose");
+    let to_best = at_best(anchor.1).compose(&a.inverse());
+    let mut sq = 0.0;
+    let mut n = 0;
+    for r in robots {
+        for (k, x) in agents[r].estimate() {
+            let d = to_best.compose(x).translation.vector - at_best(k).translation.vector;
+            sq += d.norm_squared();
+            n += 1;
+        }
+    }
+    (sq / n as f64).sqrt()
+}
+
+#[test]
+fn the_solver_leaves_and_the_next_keeps_every_closure_it_had() {
+    // Robot a solves the team and leaves; then a closure between b and c arrives (the
+    // team keeps mapping). b solves now: with a's graph (its trajectory and its closures
+    // to b, c and d, copied to its standby before it left), the three end at the optimum
+    // of everything the team knows — the centralized optimum with every closure, where
+    // a's poses are held by their last estimate's model. Without the copy, b solves b, c
+    // and d alone and a's closures are lost: their trajectories end at another optimum.
+    let g = team("example_4robots", 4);
+    let inter = |e: &doorslam_backend::BetweenFactor<SE3>| {
+        let (ra, rb) = (key::robot(g.keys()[e.i]), key::robot(g.keys()[e.j]));
+        ra != rb && ra != Some(0) && rb != Some(0)
+    };
+    let late = g
+        .edges()
+        .iter()
+        .position(inter)
+        .expect("a closure between b, c, d");
+    let mut before = g.clone();
+    let mut n = 0;
+    before.retain_edges(|_| {
+        n += 1;
+        n - 1 != late
+    });
+    let mut agents = agents_of(&before);
+    let settled = |agents: &BTreeMap<u8, Agent>, away: Option<u8>| {
+        agents
+            .iter()
+            .filter(|(r, _)| Some(**r) != away)
+            .all(|(_, a)| a.converged())
+    };
+    let mut rounds = 0;
+    while !settled(&agents, None) {
+        play_round(&mut agents, None);
+        rounds += 1;
+        assert!(rounds < 40, "the team does not settle");
+    }
+    assert!(agents[&0].solves_team());
+    let e = &g.edges()[late];
+    let (ka, kb) = (g.keys()[e.i], g.keys()[e.j]);
+    play_round(&mut agents, Some(0));
+    for r in [key::robot(ka).unwrap(), key::robot(kb).unwrap()] {
+        agents
+            .get_mut(&r)
+            .unwrap()
+            .add_closure(ka, kb, e.measured, e.information)
+            .unwrap();
+    }
+    let mut rounds = 0;
+    while !settled(&agents, Some(0)) || !agents[&1].solves_team() {
+        play_round(&mut agents, Some(0));
+        rounds += 1;
+        assert!(rounds < 40, "nobody takes over");
+    }
+    for r in 1..4 {
+        assert_eq!(agents[&r].anchor(), 0, "robot {r} left a's frame");
+    }
+    // The centralized optimum with every closure, a's first pose fixed.
+    let mut best = g.clone();
+    let a0 = (0..best.len()).min_by_key(|&p| best.keys()[p]).unwrap();
+    let a0_key = best.keys()[a0];
+    doorslam_backend::init::Chordal::chordal(&mut best, a0).unwrap();
+    doorslam_backend::optimize(&mut best, a0, &doorslam_backend::SolverOptions::default()).unwrap();
+    let ate = ate_to(&best, &agents, &[1, 2, 3], (0, a0_key));
+    // χ² of b, c and d's own edges, and its least value (b, c and d alone): equal when
+    // a's closures are lost.
+    let (got, alone) = chi2_of_team(&g, &agents, &[1, 2, 3]);
+    println!("ATE of b, c, d to the optimum with every closure: {ate:.2e} m; χ² of their own edges {got} (alone at best {alone})");
+    assert!(
+        ate <= 1e-3,
+        "ATE {ate} m: a's closures are not in b's solve"
+    );
+    assert!(
+        got > alone * (1.0 + 1e-3),
+        "{got} vs {alone}: b, c and d solved alone"
+    );
 }
 
 #[test]

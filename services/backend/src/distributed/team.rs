@@ -28,6 +28,15 @@
 //! child's subtree that moved beyond `send_pose` from what the child holds (all of them
 //! when the frame changed), and relays forward them down.
 //!
+//! **Standby copy** (`SeparatorGraph` downwards; with `AgentOptions::standby_copy`): the
+//! solver sends its lowest child
+//! its own graph (and the copies it holds of solvers before it) as it sends graphs up. A
+//! copy travels up from whoever holds it once its origin is neither on the path to the
+//! solver nor in the subtree, so when the solver leaves, the robot that takes over solves
+//! with the leaver's trajectory and every closure it held (the lowest key, and so the
+//! frame, stay the leaver's first pose); the other robots' graphs come from their owners.
+//! When the solver returns it is the root again and the copies stay where they are.
+//!
 //! Every message is acknowledged per kind, resent when lost; a neighbour that restarts
 //! (a higher epoch) is taken to hold nothing. A robot out of range keeps its last
 //! separators; the solver keeps the graphs of robots that left.
@@ -113,6 +122,12 @@ pub(crate) struct TeamState {
     /// `condensed::SeparatorSolve`), and that solve's summary.
     pub stiffness: BTreeMap<u64, doorslam_geometry::TangentMatrix>,
     pub last_solve: Option<crate::solver::Summary>,
+    /// Origins whose graph this robot holds as a standby copy: it came from a robot that
+    /// does not relay it upwards (the solver replicating its own graph, or a copy passed
+    /// up after that solver left). Copies of robots that are neither on this robot's path
+    /// to the solver nor in its subtree travel up, so the next solver keeps their
+    /// trajectories and closures ([`Agent::upward_origins`]).
+    pub standby: BTreeSet<u8>,
 }
 
 /// What a robot knows of one neighbour for the condensed method.
@@ -388,6 +403,41 @@ impl Agent {
             .fold(1u64 << self.robot, |s, c| s | c)
     }
 
+    /// The origins whose graphs go to the parent: the subtree's, and the standby copies
+    /// of robots that are not on the path to the solver (it left, or it is away) nor in
+    /// the subtree (their owners send those themselves).
+    fn upward_origins(&self, subtree: u64) -> Vec<u8> {
+        let path = &self.team.path;
+        let copies = self
+            .team
+            .standby
+            .iter()
+            .copied()
+            .filter(|o| !path.contains(o) && subtree & (1u64 << o) == 0);
+        members(subtree).chain(copies).collect()
+    }
+
+    /// The solver's standby: its lowest child, which gets a copy of the solver's own graph
+    /// and of the standby copies it holds, so that if the solver leaves, the robot that
+    /// takes over (or the one the standby routes to) still has every trajectory and
+    /// closure the solver had, and solves in the same frame (the lowest key is still the
+    /// old solver's first pose). Graphs of the other robots need no copy: their owners
+    /// send them to the new solver.
+    fn standby_child(&self, children: &BTreeMap<u8, u64>) -> Option<u8> {
+        (self.options.standby_copy && self.root() == self.robot)
+            .then(|| children.keys().next().copied())
+            .flatten()
+    }
+
+    /// What the solver copies to its standby child `child` (subtree `bits`): its own graph
+    /// and the standby copies it holds, not those of the child's subtree.
+    fn replicated_origins(&self, bits: u64) -> Vec<u8> {
+        std::iter::once(self.robot)
+            .chain(self.team.standby.iter().copied())
+            .filter(|o| bits & (1u64 << o) == 0)
+            .collect()
+    }
+
     /// The best route: lowest root, then fewest hops, then lowest next hop.
     fn best_path(&self) -> Vec<u8> {
         let mut best = ((self.robot, 1usize, self.robot), vec![self.robot]);
@@ -560,13 +610,18 @@ impl Agent {
         let Some(own) = self.team.solutions.get(&self.robot) else {
             return false;
         };
+        // The standby copies are the lower solver's inputs as it sent them: it solved with
+        // them, and sends no estimates of its own robots.
         own.anchor < self.robot
-            && versions.iter().all(|(r, v)| {
-                self.team
-                    .solutions
-                    .get(r)
-                    .is_some_and(|s| s.version == *v && s.anchor == own.anchor)
-            })
+            && versions
+                .iter()
+                .filter(|(r, _)| !self.team.standby.contains(r))
+                .all(|(r, v)| {
+                    self.team
+                        .solutions
+                        .get(r)
+                        .is_some_and(|s| s.version == *v && s.anchor == own.anchor)
+                })
     }
 
     /// Where the separators are now: at the team's solution for those it names; a separator
@@ -698,6 +753,7 @@ impl Agent {
         let children = self.children();
         let subtree = self.subtree();
         let parent = self.parent();
+        let standby = self.standby_child(&children);
         self.neighbors.iter().all(|(&id, n)| {
             if !n.present {
                 return true;
@@ -712,7 +768,7 @@ impl Agent {
                 return false;
             }
             if Some(id) == parent {
-                let graphs_up = members(subtree).all(|o| {
+                let graphs_up = self.upward_origins(subtree).into_iter().all(|o| {
                     self.team.graphs.get(&o).is_none_or(|h| {
                         l.graphs_held
                             .get(&o)
@@ -738,6 +794,19 @@ impl Agent {
             if let Some(&bits) = children.get(&id) {
                 if !l.est_out.is_empty() {
                     return false;
+                }
+                if standby == Some(id) {
+                    let copied = self.replicated_origins(bits).into_iter().all(|o| {
+                        self.team.graphs.get(&o).is_none_or(|h| {
+                            l.graphs_held
+                                .get(&o)
+                                .is_some_and(|p| p.version >= h.version)
+                        })
+                    });
+                    if !(copied && l.graph_out.is_empty()) {
+                        tracing::trace!(robot = self.robot, standby = id, "copy not held");
+                        return false;
+                    }
                 }
                 for r in members(bits) {
                     if let Some(s) = self.team.solutions.get(&r) {
@@ -850,21 +919,30 @@ impl Agent {
         let n = self.neighbors.get(&neighbor).map(|n| &n.team);
         // Graphs of the subtree, to the parent, once the route held for a step: while
         // routes are being explored (the solver left, robots try each other's stale
-        // routes) a graph sent to a parent of the moment is sent again to the next.
+        // routes) a graph sent to a parent of the moment is sent again to the next. The
+        // solver copies its own graph to its standby child the same way.
         let mut graphs = Vec::new();
         let settled = self.stats.steps > self.team.path_changed_at;
-        if Some(neighbor) == parent && settled {
-            for o in members(subtree) {
-                let Some(held) = self.team.graphs.get(&o) else {
-                    continue;
-                };
-                let view = n.and_then(|l| l.graph_view(o));
-                if view.is_some_and(|v| v.version >= held.version) {
-                    continue;
-                }
-                let base = n.and_then(|l| l.graph_base(o));
-                graphs.push((o, held.clone(), base.cloned()));
+        let standby = self.standby_child(&children);
+        let origins = if !settled {
+            Vec::new()
+        } else if Some(neighbor) == parent {
+            self.upward_origins(subtree)
+        } else if standby == Some(neighbor) {
+            self.replicated_origins(children.get(&neighbor).copied().unwrap_or(0))
+        } else {
+            Vec::new()
+        };
+        for o in origins {
+            let Some(held) = self.team.graphs.get(&o) else {
+                continue;
+            };
+            let view = n.and_then(|l| l.graph_view(o));
+            if view.is_some_and(|v| v.version >= held.version) {
+                continue;
             }
+            let base = n.and_then(|l| l.graph_base(o));
+            graphs.push((o, held.clone(), base.cloned()));
         }
         // Estimates of the child's subtree, to a child.
         let mut estimates = Vec::new();
@@ -1062,6 +1140,10 @@ impl Agent {
                     version: g.version,
                     edges: Arc::new(edges),
                 };
+                // A graph the sender does not relay upwards (not its own nor of its
+                // subtree) is a standby copy here.
+                let relayed = l.route.as_ref().map_or(0, |r| r.subtree) | (1u64 << neighbor);
+                let copy = relayed & (1u64 << g.origin) == 0;
                 l.graphs_rx.insert(g.origin, held.clone());
                 // The sender holds it: it never needs it back.
                 if l.graphs_held
@@ -1085,6 +1167,11 @@ impl Agent {
                     return Ok(false);
                 }
                 self.team.graphs.insert(g.origin, held);
+                if copy {
+                    self.team.standby.insert(g.origin);
+                } else {
+                    self.team.standby.remove(&g.origin);
+                }
                 self.team.fresh = true;
                 Ok(true)
             }
@@ -1295,9 +1382,10 @@ fn alone(
 ///
 /// A robot that solved in the frame of a lower robot (its solver, now out of range) and
 /// becomes the solver of what is left holds no graph of the robot that fixed that frame,
-/// so its own solve is anchored at itself. Both solutions are optima of their problems
-/// up to the gauge; the new one is moved rigidly so that this robot's first separator
-/// stays where the old frame put it, and keeps the old anchor. Robots that come back
+/// so its own solve is anchored at itself (with the standby copy it holds that graph, and
+/// this does not happen). Both solutions are optima of their problems up to the gauge; the
+/// new one is moved rigidly onto the old by least squares over every separator both name
+/// ([`align`]), and keeps the old anchor. Robots that come back
 /// into range of the lower robot get its solution again; nobody's map jumps meanwhile.
 fn keep_frame(
     previous: Option<&Solution>,
@@ -1316,14 +1404,14 @@ fn keep_frame(
     let Some(own) = solutions.get(&robot) else {
         return solutions;
     };
-    let Some((old, new)) = own
+    let pairs: Vec<(SE3, SE3)> = own
         .separators
         .iter()
-        .find_map(|(k, x)| previous.separators.get(k).map(|o| (*o, *x)))
-    else {
+        .filter_map(|(k, x)| previous.separators.get(k).map(|o| (*o, *x)))
+        .collect();
+    let Some(t) = align(&pairs) else {
         return solutions;
     };
-    let t = old * new.inverse();
     for s in solutions.values_mut().filter(|s| s.anchor == new_anchor) {
         s.anchor = previous.anchor;
         for x in s.separators.values_mut() {
@@ -1333,10 +1421,77 @@ fn keep_frame(
     solutions
 }
 
+/// The rigid transform `T` that puts the `new` poses onto the `old` ones (pairs `(old,
+/// new)`) in least squares: minimizes `Σ ‖t_old − (R t_new + t)‖² + ‖R_old − R R_new‖²_F`,
+/// whose rotation is the projection onto SO(3) of `Σ (t_old − t̄_old)(t_new − t̄_new)ᵀ +
+/// R_old R_newᵀ` (Kabsch, with each pose's rotation as three more point pairs) and whose
+/// translation is `t̄_old − R t̄_new`. One pair gives `old new⁻¹` exactly. None without pairs.
+fn align(pairs: &[(SE3, SE3)]) -> Option<SE3> {
+    if pairs.is_empty() {
+        return None;
+    }
+    let n = pairs.len() as f64;
+    let mean = |f: &dyn Fn(&(SE3, SE3)) -> nalgebra::Vector3<f64>| {
+        pairs.iter().map(f).sum::<nalgebra::Vector3<f64>>() / n
+    };
+    let c_old = mean(&|p| p.0.translation.vector);
+    let c_new = mean(&|p| p.1.translation.vector);
+    let mut m = nalgebra::Matrix3::<f64>::zeros();
+    for (old, new) in pairs {
+        m += (old.translation.vector - c_old) * (new.translation.vector - c_new).transpose();
+        m += old.rotation.to_rotation_matrix().matrix()
+            * new.rotation.to_rotation_matrix().matrix().transpose();
+    }
+    let r = crate::init::project_so3(&m);
+    let rotation = nalgebra::UnitQuaternion::from_matrix(&r);
+    let translation = c_old - rotation * c_new;
+    Some(SE3::from_parts(translation.into(), rotation))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use doorslam_geometry::TangentMatrix;
+
+    #[test]
+    fn frames_are_aligned_over_every_shared_separator() {
+        let t = SE3::exp(&doorslam_geometry::Tangent::from_row_slice(&[
+            0.3, -0.2, 0.9, 4.0, -1.0, 2.0,
+        ]));
+        let new: Vec<SE3> = (0..4)
+            .map(|i| {
+                let f = i as f64;
+                SE3::exp(&doorslam_geometry::Tangent::from_row_slice(&[
+                    0.1 * f,
+                    0.05,
+                    -0.2 * f,
+                    3.0 * f,
+                    f * f,
+                    -f,
+                ]))
+            })
+            .collect();
+        let exact: Vec<(SE3, SE3)> = new.iter().map(|x| (t * *x, *x)).collect();
+        let got = align(&exact).unwrap();
+        assert!((got.inverse() * t).log().norm() < 1e-9, "{got} vs {t}");
+        // The first separator off by 0.1 m and 0.01 rad: aligned on it alone (as before),
+        // the frame is off by that; over all four, by a fraction of it.
+        let mut noisy = exact.clone();
+        let off = SE3::exp(&doorslam_geometry::Tangent::from_row_slice(&[
+            0.01, 0.0, 0.0, 0.1, 0.0, 0.0,
+        ]));
+        noisy[0].0 *= off;
+        let single = align(&noisy[..1]).unwrap();
+        let all = align(&noisy).unwrap();
+        let err = |x: SE3| (x.inverse() * t).log().norm();
+        assert!(err(single) > 0.05, "{}", err(single));
+        assert!(
+            err(all) < 0.5 * err(single),
+            "{} vs {}",
+            err(all),
+            err(single)
+        );
+    }
 
     fn edge(a: u64, b: u64, x: f64) -> CondensedEdge {
         CondensedEdge {
