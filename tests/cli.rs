@@ -274,6 +274,15 @@ fn backend_timeouts_are_seconds_and_the_step_keys_are_refused_by_name() {
     assert_eq!(agent.resend_after, std::time::Duration::from_millis(3500));
     assert_eq!(agent.patience, std::time::Duration::from_secs(8));
     assert_eq!(agent.max_stage, std::time::Duration::from_secs(90));
+    assert!(!agent.standby_copy, "the standby copy is off by default");
+    let c = parse("[backend]\nstandby_copy = true\n").unwrap();
+    assert!(
+        c.backend
+            .for_robot("a", 0)
+            .distributed
+            .unwrap()
+            .standby_copy
+    );
     for (old, new) in [
         ("resend_after = 4", "resend_after_s"),
         ("patience = 10", "patience_s"),

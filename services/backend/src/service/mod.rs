@@ -102,6 +102,13 @@ pub struct BackendSection {
     pub patience_s: f64,
     #[serde(default = "default_max_stage_s")]
     pub max_stage_s: f64,
+    /// The team's solver copies its own graph to a standby (its lowest child), so that the
+    /// robot taking over when the solver leaves keeps its trajectory and every closure it
+    /// held (`doorslam dpgo --standby-copy`). Off by default: the copy costs the solver's
+    /// whole graph once more (BENCHMARKS.md, "exact at convergence, and the solver's
+    /// standby copy").
+    #[serde(default)]
+    pub standby_copy: bool,
     /// Keys of before the timeouts were seconds: refused by name (`validate`), so an old
     /// robot.toml fails saying what replaces them rather than silently meaning steps.
     #[serde(default)]
@@ -153,6 +160,7 @@ impl Default for BackendSection {
             resend_after_s: default_resend_after_s(),
             patience_s: default_patience_s(),
             max_stage_s: default_max_stage_s(),
+            standby_copy: false,
             resend_after: None,
             patience: None,
             max_stage_steps: None,
@@ -233,6 +241,7 @@ impl BackendSection {
                 resend_after: Duration::from_secs_f64(self.resend_after_s),
                 patience: Duration::from_secs_f64(self.patience_s),
                 max_stage: Duration::from_secs_f64(self.max_stage_s),
+                standby_copy: self.standby_copy,
                 ..AgentOptions::default()
             }),
             write_every: Duration::from_secs_f64(self.write_every_s),
