@@ -499,6 +499,14 @@ fn agents_of(g: &PoseGraph<SE3>) -> BTreeMap<u8, Agent> {
     agents
 }
 
+/// Every robot but `away` has converged.
+fn settled(agents: &BTreeMap<u8, Agent>, away: Option<u8>) -> bool {
+    agents
+        .iter()
+        .filter(|(r, _)| Some(**r) != away)
+        .all(|(_, a)| a.converged())
+}
+
 /// One round: every robot steps, then sends each neighbour in range what is due (encoded
 /// and decoded, as over the link). `away` is out of range of everyone.
 fn play_round(agents: &mut BTreeMap<u8, Agent>, away: Option<u8>) -> u64 {
@@ -567,12 +575,6 @@ fn chi2_of_team(g: &PoseGraph<SE3>, agents: &BTreeMap<u8, Agent>, robots: &[u8])
 fn the_solver_leaves_another_takes_over_and_it_comes_back() {
     let g = team("example_4robots", 4);
     let mut agents = agents_of(&g);
-    let settled = |agents: &BTreeMap<u8, Agent>, away: Option<u8>| {
-        agents
-            .iter()
-            .filter(|(r, _)| Some(**r) != away)
-            .all(|(_, a)| a.converged())
-    };
     let mut rounds = 0;
     while !settled(&agents, None) {
         play_round(&mut agents, None);
@@ -667,12 +669,6 @@ fn the_solver_leaves_and_the_next_keeps_every_closure_it_had() {
         n - 1 != late
     });
     let mut agents = agents_of(&before);
-    let settled = |agents: &BTreeMap<u8, Agent>, away: Option<u8>| {
-        agents
-            .iter()
-            .filter(|(r, _)| Some(**r) != away)
-            .all(|(_, a)| a.converged())
-    };
     let mut rounds = 0;
     while !settled(&agents, None) {
         play_round(&mut agents, None);
