@@ -19,28 +19,7 @@ const BIN: &str = env!("CARGO_BIN_EXE_doorslam");
 
 /// A KITTI-layout sequence: noise images, times at 100 Hz, poses along a line.
 fn write_dataset(dir: &Path, frames: usize) {
-    std::fs::create_dir_all(dir.join("image_0")).unwrap();
-    std::fs::create_dir_all(dir.join("image_1")).unwrap();
-    let mut state = 0x2545F4914F6CDD1Du64;
-    let mut times = String::new();
-    let mut poses = String::new();
-    for k in 0..frames {
-        let px: Vec<u8> = (0..64 * 48)
-            .map(|_| {
-                state ^= state << 13;
-                state ^= state >> 7;
-                state ^= state << 17;
-                state as u8
-            })
-            .collect();
-        let name = format!("{k:06}.png");
-        doorslam_dataset::write_gray_png(&dir.join("image_0").join(&name), 64, 48, &px).unwrap();
-        doorslam_dataset::write_gray_png(&dir.join("image_1").join(&name), 64, 48, &px).unwrap();
-        times.push_str(&format!("{:.6}\n", k as f64 * 0.01));
-        poses.push_str(&format!("1 0 0 {} 0 1 0 0 0 0 1 0\n", 0.1 * k as f64));
-    }
-    std::fs::write(dir.join("times.txt"), times).unwrap();
-    std::fs::write(dir.join("poses.txt"), poses).unwrap();
+    common::write_noise_dataset(dir, frames, 0.01, |k| (0.1 * k as f64, 0.0));
 }
 
 /// Keyframe ids and the number of odometry edges in a back-end journal.

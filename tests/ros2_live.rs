@@ -14,42 +14,15 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;
-use common::{signal, wait_exit, Guard, LogReader};
+use common::{free_port, signal, wait_exit, Guard, LogReader};
 
 const BIN: &str = env!("CARGO_BIN_EXE_doorslam");
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 /// A KITTI-layout sequence: noise images at 10 Hz, poses along a gentle curve.
 fn write_dataset(dir: &Path, frames: usize) {
-    std::fs::create_dir_all(dir.join("image_0")).unwrap();
-    std::fs::create_dir_all(dir.join("image_1")).unwrap();
-    let mut state = 0x2545F4914F6CDD1Du64;
-    let (mut times, mut poses) = (String::new(), String::new());
-    for k in 0..frames {
-        let px: Vec<u8> = (0..64 * 48)
-            .map(|_| {
-                state ^= state << 13;
-                state ^= state >> 7;
-                state ^= state << 17;
-                state as u8
-            })
-            .collect();
-        let name = format!("{k:06}.png");
-        doorslam_dataset::write_gray_png(&dir.join("image_0").join(&name), 64, 48, &px).unwrap();
-        doorslam_dataset::write_gray_png(&dir.join("image_1").join(&name), 64, 48, &px).unwrap();
-        times.push_str(&format!("{:.6}\n", k as f64 * 0.1));
-        let (x, z) = (0.5 * k as f64, 0.002 * (k * k) as f64);
-        poses.push_str(&format!("1 0 0 {x} 0 1 0 0 0 0 1 {z}\n"));
-    }
-    std::fs::write(dir.join("times.txt"), times).unwrap();
-    std::fs::write(dir.join("poses.txt"), poses).unwrap();
+    common::write_noise_dataset(dir, frames, 0.1, |k| {
+        (0.5 * k as f64, 0.002 * (k * k) as f64)
+    });
 }
 
 /// Waits until `file` exists and has not changed for `quiet`.

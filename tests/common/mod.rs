@@ -1,7 +1,8 @@
 //! What the process-level tests share: a guard that kills a child the test started, the
 //! child's stderr read as it comes (so tests wait for events in the log instead of
 //! guessing how long a loaded machine takes), and the back-end journal read as keyframe
-//! ids and odometry edges. Each test binary uses the parts it needs.
+//! ids and odometry edges, a replayable noise dataset, a free port. Each test binary uses
+//! the parts it needs.
 #![allow(dead_code)]
 
 use std::path::Path;
@@ -132,4 +133,47 @@ pub fn journaled(journal: &Path) -> (Vec<u64>, Vec<(u64, u64)>) {
         }
     }
     (keyframes, edges)
+}
+
+/// A KITTI-layout stereo sequence of `frames` 64x48 noise images (the same seeded noise in
+/// every call, left and right identical), stamped every `period_s`, the camera at
+/// `position(k)` = (x, z) without rotation: enough for a replay and the simulated
+/// keyframes, which read poses, never the pixels.
+pub fn write_noise_dataset(
+    dir: &Path,
+    frames: usize,
+    period_s: f64,
+    position: impl Fn(usize) -> (f64, f64),
+) {
+    std::fs::create_dir_all(dir.join("image_0")).unwrap();
+    std::fs::create_dir_all(dir.join("image_1")).unwrap();
+    let mut state = 0x2545F4914F6CDD1Du64;
+    let (mut times, mut poses) = (String::new(), String::new());
+    for k in 0..frames {
+        let px: Vec<u8> = (0..64 * 48)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                state as u8
+            })
+            .collect();
+        let name = format!("{k:06}.png");
+        doorslam_dataset::write_gray_png(&dir.join("image_0").join(&name), 64, 48, &px).unwrap();
+        doorslam_dataset::write_gray_png(&dir.join("image_1").join(&name), 64, 48, &px).unwrap();
+        times.push_str(&format!("{:.6}\n", k as f64 * period_s));
+        let (x, z) = position(k);
+        poses.push_str(&format!("1 0 0 {x} 0 1 0 0 0 0 1 {z}\n"));
+    }
+    std::fs::write(dir.join("times.txt"), times).unwrap();
+    std::fs::write(dir.join("poses.txt"), poses).unwrap();
+}
+
+/// A TCP port nobody listens on now (the OS's pick), for a test's own endpoints.
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
 }
