@@ -609,7 +609,7 @@ impl StereoVo {
         else {
             self.stats.segments -= 1;
             let points = self.extractor.extract(left, right)?.features;
-            let points = points.iter().filter(|f| f.disparity.is_some()).count();
+            let points = points.len();
             return Ok(self.lost_frame(frame, LostReason::TooFewPoints { points }));
         };
         let link = self.last_good.take().map(|g| SegmentLink {
@@ -849,7 +849,7 @@ fn stereo_points(features: &FrameFeatures) -> Vec<(&FrameFeature, f64)> {
     let mut stereo: Vec<_> = features
         .features
         .iter()
-        .filter_map(|f| f.disparity.map(|d| (f, d as f64)))
+        .map(|f| (f, f.disparity as f64))
         .collect();
     stereo.sort_by(|a, b| b.0.response.total_cmp(&a.0.response));
     stereo

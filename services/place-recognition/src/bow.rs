@@ -286,7 +286,6 @@ pub fn keyframe_descriptors(
     Ok(features
         .features
         .iter()
-        .filter(|f| f.disparity.is_some())
         .take(doorslam_ipc::MAX_KEYFRAME_FEATURES)
         .map(|f| f.descriptor)
         .collect())

@@ -18,14 +18,14 @@ pub struct FrameFeature {
     /// Sub-pixel position (u, v) in the left image.
     pub pixel: [f32; 2],
     pub descriptor: [u8; 32],
-    /// Sub-pixel disparity (px) when the right image matched along the row.
-    pub disparity: Option<f32>,
+    /// Sub-pixel disparity (px): where the right image shows the pixel's patch.
+    pub disparity: f32,
     /// Detector response (higher is stronger): keyframes keep their features in this
     /// order, so a packet's first N are its best.
     pub response: f32,
 }
 
-/// A stereo frame's features.
+/// A stereo frame's features: the left keypoints that matched along the row.
 #[derive(Debug, Clone, Default)]
 pub struct FrameFeatures {
     pub features: Vec<FrameFeature>,
@@ -98,44 +98,74 @@ impl Extractor {
         &self.config
     }
 
-    /// Left keypoints with descriptors, then their stereo disparities.
+    /// The left keypoints that found a stereo match, each with its sub-pixel disparity and
+    /// ORB descriptor, in detection order (strongest first for GFTT and FAST).
+    ///
+    /// Only matched keypoints are of use (a keyframe carries 3-D points), so the row
+    /// stereo runs first, on the detector's integer corners, and the costly per-keypoint
+    /// work (GFTT's sub-pixel refinement, ORB's descriptors) only on the matches: at KITTI
+    /// size a third to a half of the corners find no match (sky, road, far field). The
+    /// block matcher works on the rounded pixel anyway, and the refined corner is at most a
+    /// pixel away: disparity belongs to the place, not to the rounding.
     pub fn extract(
         &mut self,
         left: &Gray<'_>,
         right: &Gray<'_>,
     ) -> Result<FrameFeatures, VisionError> {
         let image = left.mat()?;
-        let mut keypoints = self.detect(&image)?;
-        let mut descriptors = Mat::default();
-        let provided = self.config.detector != Detector::Orb;
-        self.orb
-            .detect_and_compute(
-                &image,
-                &no_array(),
-                &mut keypoints,
-                &mut descriptors,
-                provided,
-            )
-            .map_err(cv("ORB descriptors"))?;
+        let config = self.config.clone();
+        let config = &config;
+        let (mut keypoints, disparities) = match config.detector {
+            Detector::Orb => {
+                // ORB's own oriented multi-scale keypoints: detected and described
+                // together, then the matched ones kept.
+                let mut keypoints = Vector::<KeyPoint>::new();
+                let mut descriptors = Mat::default();
+                self.orb
+                    .detect_and_compute(
+                        &image,
+                        &no_array(),
+                        &mut keypoints,
+                        &mut descriptors,
+                        false,
+                    )
+                    .map_err(cv("ORB detect and describe"))?;
+                return stereo_features(left, right, config, &keypoints, &descriptors, None);
+            }
+            Detector::Gftt | Detector::Fast => {
+                let corners = self.detect_integer(&image)?;
+                let mut matched = Vector::<KeyPoint>::with_capacity(corners.len());
+                let mut disparities = Vec::with_capacity(corners.len());
+                for mut kp in corners.iter() {
+                    if let Some(d) = match_along_row(left, right, [kp.pt().x, kp.pt().y], config) {
+                        // The index rides in the class id, so the rows ORB returns (it
+                        // drops keypoints it cannot describe) find their disparities.
+                        kp.set_class_id(disparities.len() as i32);
+                        matched.push(kp);
+                        disparities.push(d);
+                    }
+                }
+                (matched, disparities)
+            }
+        };
         if keypoints.is_empty() {
             return Ok(FrameFeatures::default());
         }
-        if descriptors.cols() != 32 || descriptors.rows() != keypoints.len() as i32 {
-            return Err(VisionError::DescriptorWidth {
-                cols: descriptors.cols(),
-            });
+        if config.detector == Detector::Gftt {
+            refine_sub_pixel(&image, &mut keypoints)?;
         }
-        let mut features = Vec::with_capacity(keypoints.len());
-        for (i, kp) in keypoints.iter().enumerate() {
-            let pixel = [kp.pt().x, kp.pt().y];
-            features.push(FrameFeature {
-                pixel,
-                descriptor: descriptor_row(&descriptors, i)?,
-                disparity: match_along_row(left, right, pixel, &self.config),
-                response: kp.response(),
-            });
-        }
-        Ok(FrameFeatures { features })
+        let mut descriptors = Mat::default();
+        self.orb
+            .compute(&image, &mut keypoints, &mut descriptors)
+            .map_err(cv("ORB descriptors"))?;
+        stereo_features(
+            left,
+            right,
+            config,
+            &keypoints,
+            &descriptors,
+            Some(&disparities),
+        )
     }
 
     /// Corners of the configured detector in the left image, strongest first (at most
@@ -157,8 +187,11 @@ impl Extractor {
             out.sort_by(|a, b| b.response.total_cmp(&a.response));
             return Ok(out);
         }
-        Ok(self
-            .detect(&image)?
+        let mut keypoints = self.detect_integer(&image)?;
+        if self.config.detector == Detector::Gftt {
+            refine_sub_pixel(&image, &mut keypoints)?;
+        }
+        Ok(keypoints
             .iter()
             .map(|k| Corner {
                 pixel: [k.pt().x, k.pt().y],
@@ -207,7 +240,9 @@ impl Extractor {
         Ok(out)
     }
 
-    fn detect(
+    /// The GFTT or FAST corners at their integer pixels, strongest first, at most
+    /// `max_features` (none for ORB, which detects as it describes).
+    fn detect_integer(
         &mut self,
         image: &impl opencv::core::ToInputArray,
     ) -> Result<Vector<KeyPoint>, VisionError> {
@@ -248,8 +283,8 @@ impl Extractor {
     /// structure tensor) with OpenCV's score image, but selected on a grid: the strongest
     /// pixel of each `min_feature_distance_px` cell above `gftt_quality` × the best score,
     /// strongest first. The same corners as cv::goodFeaturesToTrack's spread-out set at a
-    /// fraction of its cost (it sorts every candidate pixel), and a sub-pixel position from
-    /// cv::cornerSubPix. Returns (u, v, score).
+    /// fraction of its cost (it sorts every candidate pixel), at integer pixels
+    /// ([`refine_sub_pixel`] refines the ones kept). Returns (u, v, score).
     fn shi_tomasi(
         &mut self,
         image: &impl opencv::core::ToInputArray,
@@ -303,33 +338,83 @@ impl Extractor {
         cells.retain(|c| c[2] > threshold);
         cells.sort_by(|a, b| b[2].total_cmp(&a[2]));
         cells.truncate(self.config.max_features);
-        if cells.is_empty() {
-            return Ok(cells);
-        }
-        // Sub-pixel corners (the gradient-orthogonality iteration of cv::cornerSubPix):
-        // integer positions alone would add up to ±0.5 px to every residual.
-        let mut corners: Vector<Point2f> = cells.iter().map(|c| Point2f::new(c[0], c[1])).collect();
-        opencv::imgproc::corner_sub_pix(
-            image,
-            &mut corners,
-            Size::new(3, 3),
-            Size::new(-1, -1),
-            TermCriteria::new(
-                opencv::core::TermCriteria_COUNT + opencv::core::TermCriteria_EPS,
-                10,
-                0.01,
-            )
-            .map_err(cv("TermCriteria"))?,
-        )
-        .map_err(cv("cornerSubPix"))?;
-        for (c, p) in cells.iter_mut().zip(corners.iter()) {
-            // A corner that wandered more than a pixel was not a corner.
-            if (p.x - c[0]).abs() <= 1.0 && (p.y - c[1]).abs() <= 1.0 {
-                (c[0], c[1]) = (p.x, p.y);
-            }
-        }
         Ok(cells)
     }
+}
+
+/// Moves each keypoint to its sub-pixel corner (the gradient-orthogonality iteration of
+/// cv::cornerSubPix): integer positions alone would add up to ±0.5 px to every residual.
+/// A corner that wanders more than a pixel was not a corner, and keeps its pixel.
+fn refine_sub_pixel(
+    image: &impl opencv::core::ToInputArray,
+    keypoints: &mut Vector<KeyPoint>,
+) -> Result<(), VisionError> {
+    if keypoints.is_empty() {
+        return Ok(());
+    }
+    let mut corners: Vector<Point2f> = keypoints.iter().map(|k| k.pt()).collect();
+    opencv::imgproc::corner_sub_pix(
+        image,
+        &mut corners,
+        Size::new(3, 3),
+        Size::new(-1, -1),
+        TermCriteria::new(
+            opencv::core::TermCriteria_COUNT + opencv::core::TermCriteria_EPS,
+            10,
+            0.01,
+        )
+        .map_err(cv("TermCriteria"))?,
+    )
+    .map_err(cv("cornerSubPix"))?;
+    for (i, p) in corners.iter().enumerate() {
+        let mut kp = keypoints.get(i).map_err(cv("keypoint"))?;
+        let q = kp.pt();
+        if (p.x - q.x).abs() <= 1.0 && (p.y - q.y).abs() <= 1.0 {
+            kp.set_pt(p);
+            keypoints.set(i, kp).map_err(cv("keypoint"))?;
+        }
+    }
+    Ok(())
+}
+
+/// The features of described keypoints with a stereo match: row `i` of `descriptors` is
+/// keypoint `i`; its disparity is `disparities[class id]` when the row stereo already ran
+/// on the detector's corners, else matched here.
+fn stereo_features(
+    left: &Gray<'_>,
+    right: &Gray<'_>,
+    config: &FeatureConfig,
+    keypoints: &Vector<KeyPoint>,
+    descriptors: &Mat,
+    disparities: Option<&[f32]>,
+) -> Result<FrameFeatures, VisionError> {
+    if keypoints.is_empty() {
+        return Ok(FrameFeatures::default());
+    }
+    if descriptors.cols() != 32 || descriptors.rows() != keypoints.len() as i32 {
+        return Err(VisionError::DescriptorWidth {
+            cols: descriptors.cols(),
+        });
+    }
+    let mut features = Vec::with_capacity(keypoints.len());
+    for (row, kp) in keypoints.iter().enumerate() {
+        let pixel = [kp.pt().x, kp.pt().y];
+        let disparity = match disparities {
+            Some(d) => usize::try_from(kp.class_id())
+                .ok()
+                .and_then(|i| d.get(i).copied()),
+            None => match_along_row(left, right, pixel, config),
+        };
+        if let Some(disparity) = disparity {
+            features.push(FrameFeature {
+                pixel,
+                descriptor: descriptor_row(descriptors, row)?,
+                disparity,
+                response: kp.response(),
+            });
+        }
+    }
+    Ok(FrameFeatures { features })
 }
 
 fn descriptor_row(descriptors: &Mat, row: usize) -> Result<[u8; 32], VisionError> {
