@@ -577,7 +577,8 @@ impl Agent {
         // robot of its subtree sent one and no graph changed for a step — for at most
         // twice `patience` (graphs of a large team take a link delivery per hop; a running
         // team's graphs may keep changing).
-        let missing = members(self.subtree()).any(|r| !self.team.graphs.contains_key(&r));
+        let missing = members(self.subtree()).any(|r| !self.team.graphs.contains_key(&r))
+            || self.referenced_graph_missing();
         let fresh = std::mem::take(&mut self.team.fresh);
         let since = *self.team.waiting_since.get_or_insert(self.now);
         if (missing || fresh) && self.now.saturating_sub(since) < 2 * self.options.patience {
@@ -659,6 +660,29 @@ impl Agent {
         self.team.solutions = solutions;
         self.team.solved_with = versions;
         Ok(true)
+    }
+
+    /// Whether a robot of the connected team is known to exist and its graph is not here
+    /// yet: a closure of a graph held (or of this robot) names it, and it is not a
+    /// neighbour known to be out of range. Routes alone do not tell: while they are still
+    /// spreading, the subtree holds only the robots whose routes arrived, and a solve then
+    /// sends every robot estimates that the next solve, with the late graphs, replaces.
+    /// Every robot of the team is named by a closure in some graph of it, so once this is
+    /// false the solver holds every graph of its team (or waited its bounded time).
+    fn referenced_graph_missing(&self) -> bool {
+        let away = |r: u8| self.neighbors.get(&r).is_some_and(|n| !n.present);
+        let named = self
+            .team
+            .graphs
+            .values()
+            .flat_map(|h| h.edges.iter())
+            .flat_map(|e| [e.a, e.b])
+            .filter_map(key::robot)
+            .chain(self.neighbors.keys().copied());
+        let mut seen = BTreeSet::new();
+        named
+            .filter(|r| seen.insert(*r))
+            .any(|r| r != self.robot && !away(r) && !self.team.graphs.contains_key(&r))
     }
 
     /// Whether the solutions held came from a lower solver that used every graph in
