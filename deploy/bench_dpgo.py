@@ -4,7 +4,8 @@ optimization" section; prints its Markdown tables. Run through `deploy/bench-dpg
 
     bench_dpgo.py DOORSLAM DATA ACCEPTANCE TABLE...
 
-TABLE: teams (condensed and dgs per team), loss (drop 10 % / 30 %, a robot out of range),
+TABLE: teams (condensed and dgs per team), kinds (bytes per message kind, direct and over the
+team link, with and without the standby copy), loss (drop 10 % / 30 %, a robot out of range),
 pcm (plain PCM, PCM keeping singletons, 3-robot cycles), loop (PCM in the loop: bytes with
 and without it, precision/recall), stream (keyframes arriving while the team runs: graph
 updates vs whole graphs). Teams missing on disk are skipped with a note on stderr."""
@@ -173,6 +174,27 @@ def table_link(doorslam, all_teams):
         print(f"| {name} | " + " | ".join(cells) + " |")
 
 
+def table_kinds(doorslam, all_teams):
+    """Where the bytes go: per message kind, over the runner's delivery (`--link direct`) and
+    the team link (session), with and without the standby copy, against both centralized
+    baselines."""
+    kinds = ["separator_graph", "pose_estimates", "route", "ack", "hello"]
+    print("| team | link | standby copy | " + " | ".join(kinds) + " | bytes | ratio (direct) | ratio (relayed) | converged (stop, every robot told) |")
+    print("|---|---|---|" + "---|" * len(kinds) + "---|---|---|---|")
+    LINK_TABLE[0] = True
+    for name, files, extra, _ in all_teams:
+        for link, largs in [("direct", ["--link", "direct"]), ("session", [])]:
+            for copy, cargs in [("no", []), ("yes", ["--standby-copy"])]:
+                r = run(doorslam, "dpgo", *files, *extra, *largs, *cargs)
+                told = set(r.get("stop_reasons", {}).values())
+                cells = [f"{r['bytes_by_kind'].get(k, 0):,}" for k in kinds]
+                print(f"| {name} | {link} | {copy} | " + " | ".join(cells) + f" | {r['bytes']:,} "
+                      f"| {r['bytes_ratio']:.3f} | {r['bytes'] / max(1, r['bytes_centralized_relayed']):.3f} "
+                      f"| {'yes' if r['converged'] else 'no'} ({r['stop_reason']}; {', '.join(sorted(told))}) |")
+                sys.stdout.flush()
+    LINK_TABLE[0] = False
+
+
 def main():
     doorslam, data, acceptance, *tables = sys.argv[1:]
     with tempfile.TemporaryDirectory(prefix="doorslam-bench-dpgo-") as tmp:
@@ -184,7 +206,8 @@ def main():
              "pcm": lambda: table_pcm(doorslam, data, acceptance, tmp),
              "loop": lambda: table_loop(doorslam, all_teams),
              "stream": lambda: table_stream(doorslam, all_teams),
-             "link": lambda: table_link(doorslam, all_teams)}[t]()
+             "link": lambda: table_link(doorslam, all_teams),
+             "kinds": lambda: table_kinds(doorslam, all_teams)}[t]()
             sys.stdout.flush()
 
 

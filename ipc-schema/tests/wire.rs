@@ -719,6 +719,61 @@ fn invalid_values_are_named() {
 }
 
 #[test]
+fn the_solve_stop_rides_in_the_estimate_flags_at_no_byte() {
+    let with = |flags: u8| {
+        let mut m = samples()[5].clone();
+        if let Body::PoseEstimates(p) = &mut m.body {
+            p.flags = flags;
+        }
+        m
+    };
+    let plain = with(0).encode().unwrap();
+    let cut = with(SolveStop::flags(Some(SolveStop::MaxIterations)));
+    let bytes = cut.encode().unwrap();
+    assert_eq!(bytes.len(), plain.len());
+    let back = decode_bounded(&bytes).unwrap();
+    assert_eq!(back, cut);
+    let Body::PoseEstimates(p) = &back.body else {
+        panic!("{back:?}")
+    };
+    assert_eq!(
+        SolveStop::from_flags(p.flags),
+        Ok(Some(SolveStop::MaxIterations))
+    );
+    // The flags byte: version, kind, sender (length + 5), epoch, sequence, then
+    // optimization, round and stage (one byte each here).
+    let at = (0..plain.len())
+        .find(|&i| {
+            let mut b = plain.clone();
+            b[i] = 0b1_0010;
+            decode_bounded(&b).is_ok_and(|m| m == with(0b1_0010))
+        })
+        .expect("the flags byte");
+    for (flags, why) in [
+        (10u8 << 1, "names no stop"),
+        (15 << 1, "names no stop"),
+        (1 << 5, "unknown bits"),
+        (1 << 7, "unknown bits"),
+    ] {
+        let mut b = plain.clone();
+        b[at] = flags;
+        let e = decode_bounded(&b).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                WireError::Invalid {
+                    field: "estimate flags",
+                    ..
+                }
+            ),
+            "{flags:#b}: {e}"
+        );
+        assert!(e.to_string().contains(why), "{flags:#b}: {e}");
+        assert!(with(flags).encode().is_err(), "{flags:#b} encoded");
+    }
+}
+
+#[test]
 fn condensed_graph_edges_are_compact_and_informations_canonical() {
     // An edge that repeats the previous edge's information costs its keys, a compact pose
     // and one tag byte; one with its own information 46 bytes more (a LoopClosures entry
@@ -1027,18 +1082,27 @@ fn arb_body() -> impl Strategy<Value = Body> {
             any::<u64>(),
             any::<u64>(),
             0u8..3,
-            (any::<bool>(), 0u8..52, 0u8..52),
+            (any::<bool>(), 0u8..52, 0u8..52, 0u8..10),
             prop::collection::btree_set(0u64..100_000, 0..10),
             prop::collection::vec((arb_pose(), prop::array::uniform9(-2.0f64..2.0)), 10)
         )
             .prop_map(
-                |(optimization, round, stage, (converged, anchor, robot), indices, values)| {
+                |(
+                    optimization,
+                    round,
+                    stage,
+                    (converged, anchor, robot, stop),
+                    indices,
+                    values,
+                )| {
                     let stage = [Stage::Rotation, Stage::Pose, Stage::Refine][stage as usize];
+                    let stop = SolveStop::from_flags(stop << 1).unwrap();
                     Body::PoseEstimates(PoseEstimates {
                         optimization,
                         round,
                         stage,
-                        flags: if converged { ESTIMATES_CONVERGED } else { 0 },
+                        flags: SolveStop::flags(stop)
+                            | if converged { ESTIMATES_CONVERGED } else { 0 },
                         anchor,
                         estimates: indices
                             .into_iter()

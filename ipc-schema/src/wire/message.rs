@@ -244,6 +244,78 @@ pub struct PoseEstimate {
 /// Bit of [`PoseEstimates::flags`]: the sender's estimate stopped changing in this stage.
 pub const ESTIMATES_CONVERGED: u8 = 1;
 
+/// Bits of [`PoseEstimates::flags`] that say how the solve behind the estimates stopped
+/// ([`SolveStop`], 0: not said). The flags byte is sent anyway, so the team's solver tells
+/// every robot why its solve stopped at no byte's cost.
+pub const ESTIMATES_STOP_MASK: u8 = 0b1_1110;
+const ESTIMATES_STOP_SHIFT: u32 = 1;
+
+/// How the solve that produced a message's estimates stopped: the back-end solver's stop
+/// reasons, as the condensed method's team solver sends them down with the separators.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u8)]
+pub enum SolveStop {
+    ConvergedSmallCost = 1,
+    ConvergedSmallDecrease = 2,
+    ConvergedSmallPredictedDecrease = 3,
+    MaxIterations = 4,
+    NoDecrease = 5,
+    NonFiniteStep = 6,
+    Diverged = 7,
+    GncNotSettled = 8,
+    NegativeCost = 9,
+}
+
+impl SolveStop {
+    const ALL: [SolveStop; 9] = [
+        SolveStop::ConvergedSmallCost,
+        SolveStop::ConvergedSmallDecrease,
+        SolveStop::ConvergedSmallPredictedDecrease,
+        SolveStop::MaxIterations,
+        SolveStop::NoDecrease,
+        SolveStop::NonFiniteStep,
+        SolveStop::Diverged,
+        SolveStop::GncNotSettled,
+        SolveStop::NegativeCost,
+    ];
+
+    /// The flags bits that carry `stop` (0 for none).
+    pub fn flags(stop: Option<SolveStop>) -> u8 {
+        stop.map_or(0, |s| (s as u8) << ESTIMATES_STOP_SHIFT)
+    }
+
+    /// The stop carried by `flags`; `Err(code)` for a code that names no stop.
+    pub fn from_flags(flags: u8) -> Result<Option<SolveStop>, u8> {
+        let code = (flags & ESTIMATES_STOP_MASK) >> ESTIMATES_STOP_SHIFT;
+        if code == 0 {
+            return Ok(None);
+        }
+        Self::ALL
+            .into_iter()
+            .find(|s| *s as u8 == code)
+            .map(Some)
+            .ok_or(code)
+    }
+}
+
+/// Checks the flags byte of estimates: known bits, and a stop code that names a stop.
+fn check_estimate_flags(flags: u8, offset: usize) -> Result<(), WireError> {
+    if flags & !(ESTIMATES_CONVERGED | ESTIMATES_STOP_MASK) != 0 {
+        return Err(WireError::invalid(
+            "estimate flags",
+            offset,
+            "unknown bits set",
+        ));
+    }
+    SolveStop::from_flags(flags).map(drop).map_err(|code| {
+        WireError::invalid(
+            "estimate flags",
+            offset,
+            format!("solve stop code {code} names no stop (1-9)"),
+        )
+    })
+}
+
 /// Separator estimates for one round of the distributed back-end (step 4).
 ///
 /// Layout: optimization (varint), round (varint), stage (u8), flags (u8), anchor (u8),
@@ -259,7 +331,8 @@ pub struct PoseEstimates {
     /// The sender's iteration within the stage, from 0.
     pub round: u64,
     pub stage: Stage,
-    /// [`ESTIMATES_CONVERGED`]; other bits must be 0.
+    /// [`ESTIMATES_CONVERGED`] and the solve's stop ([`ESTIMATES_STOP_MASK`],
+    /// [`SolveStop::flags`]); the top three bits must be 0.
     pub flags: u8,
     /// The robot (0 = 'a') whose first pose fixes the gauge of these estimates: the lowest
     /// robot of the sender's connected team.
@@ -565,13 +638,7 @@ fn write_estimates(s: &mut impl Sink, p: &PoseEstimates) -> Result<(), WireError
     s.varint(p.optimization);
     s.varint(p.round);
     s.u8(p.stage as u8);
-    if p.flags & !ESTIMATES_CONVERGED != 0 {
-        return Err(WireError::invalid(
-            "estimate flags",
-            s.offset(),
-            "unknown bits set",
-        ));
-    }
+    check_estimate_flags(p.flags, s.offset())?;
     s.u8(p.flags);
     if p.anchor >= doorslam_geometry::key::MAX_ROBOTS {
         return Err(WireError::invalid(
@@ -638,13 +705,7 @@ fn read_estimates(r: &mut Reader<'_>) -> Result<PoseEstimates, WireError> {
     })?;
     let offset = r.offset();
     let flags = r.u8("estimate flags")?;
-    if flags & !ESTIMATES_CONVERGED != 0 {
-        return Err(WireError::invalid(
-            "estimate flags",
-            offset,
-            "unknown bits set",
-        ));
-    }
+    check_estimate_flags(flags, offset)?;
     let offset = r.offset();
     let anchor = r.u8("estimate anchor")?;
     if anchor >= doorslam_geometry::key::MAX_ROBOTS {

@@ -40,9 +40,9 @@ pub use error::WireError;
 pub use message::Descriptors;
 pub use message::{
     Ack, Body, Estimate, Header, Hello, Kind, LoopClosure, LoopClosures, Match, Matches, Message,
-    PoseEstimate, PoseEstimates, Stage, VerificationFeatures, ESTIMATES_CONVERGED, MAX_ACK_RANGES,
-    MAX_DESCRIPTORS, MAX_FEATURES, MAX_LOOP_CLOSURES, MAX_MATCHES, MAX_MESSAGE_BYTES,
-    MAX_POSE_ESTIMATES, WIRE_VERSION,
+    PoseEstimate, PoseEstimates, SolveStop, Stage, VerificationFeatures, ESTIMATES_CONVERGED,
+    ESTIMATES_STOP_MASK, MAX_ACK_RANGES, MAX_DESCRIPTORS, MAX_FEATURES, MAX_LOOP_CLOSURES,
+    MAX_MATCHES, MAX_MESSAGE_BYTES, MAX_POSE_ESTIMATES, WIRE_VERSION,
 };
 pub use supersede::Slot;
 pub use types::{

@@ -106,9 +106,20 @@ fn a_solver_stopped_by_its_iteration_limit_is_not_converged() {
     assert!(r.settled, "{r:?}");
     assert!(!r.converged, "{r:?}");
     assert_eq!(r.stop_reason, "max_iterations", "{r:?}");
+    // Every robot was told, not only the solver: the stop came down with the estimates.
+    assert_eq!(r.stop_reasons.len(), 4, "{r:?}");
+    assert!(
+        r.stop_reasons.values().all(|s| s == "max_iterations"),
+        "{r:?}"
+    );
     let full = run(&g, &options(Method::Condensed)).unwrap();
     assert!(full.converged, "{full:?}");
     assert!(full.stop_reason.starts_with("converged_"), "{full:?}");
+    assert_eq!(full.stop_reasons.len(), 4, "{full:?}");
+    assert!(
+        full.stop_reasons.values().all(|s| s == &full.stop_reason),
+        "{full:?}"
+    );
 }
 
 #[test]

@@ -159,9 +159,9 @@ fn two_robots() -> (Robot, Robot) {
     (a, b)
 }
 
-/// backend.json's `team` of robot a (the team's solver) once the pair settled, its solver
-/// limited to `max_iterations`.
-fn team_status(max_iterations: usize) -> serde_json::Value {
+/// backend.json's `team` of robots a (the team's solver) and b once the pair settled, the
+/// solver limited to `max_iterations`.
+fn team_status(max_iterations: usize) -> [serde_json::Value; 2] {
     let options = AgentOptions {
         solver: doorslam_backend::SolverOptions {
             max_iterations,
@@ -185,24 +185,30 @@ fn team_status(max_iterations: usize) -> serde_json::Value {
     b.announce(&a);
     assert!(settle(&mut a, &mut b) < 50, "no settling in 50 rounds");
     assert!(a.bridge.agent().solves_team());
-    let state = BackendState::new(0, 10).unwrap().with_team(a.bridge);
-    serde_json::to_value(Outputs::status(&state)).unwrap()["team"].clone()
+    assert!(!b.bridge.agent().solves_team());
+    [a, b].map(|r| {
+        let state = BackendState::new(0, 10).unwrap().with_team(r.bridge);
+        serde_json::to_value(Outputs::status(&state)).unwrap()["team"].clone()
+    })
 }
 
 #[test]
 fn the_status_says_why_the_solver_stopped_and_a_cut_solve_is_not_converged() {
-    let cut = team_status(1);
-    assert_eq!(cut["settled"], true, "{cut}");
-    assert_eq!(cut["converged"], false, "{cut}");
-    assert_eq!(cut["stop_reason"], "max_iterations", "{cut}");
-    let full = team_status(100);
-    assert_eq!(full["converged"], true, "{full}");
-    assert!(
-        full["stop_reason"]
-            .as_str()
-            .is_some_and(|r| r.starts_with("converged_")),
-        "{full}"
-    );
+    // On the solver and on the robot it sends estimates to (the stop rides in their flags).
+    for cut in team_status(1) {
+        assert_eq!(cut["settled"], true, "{cut}");
+        assert_eq!(cut["converged"], false, "{cut}");
+        assert_eq!(cut["stop_reason"], "max_iterations", "{cut}");
+    }
+    for full in team_status(100) {
+        assert_eq!(full["converged"], true, "{full}");
+        assert!(
+            full["stop_reason"]
+                .as_str()
+                .is_some_and(|r| r.starts_with("converged_")),
+            "{full}"
+        );
+    }
 }
 
 #[test]

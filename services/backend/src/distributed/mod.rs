@@ -665,6 +665,14 @@ impl Agent {
         self.team.last_solve.as_ref()
     }
 
+    /// How the team solve behind this robot's separator estimates stopped (condensed
+    /// method): on the solver its own solve's, on every other robot the stop that came
+    /// down with its estimates (the flags of `PoseEstimates`). `None` before any solution
+    /// (or with DGS, which has no team solve).
+    pub fn team_stop_reason(&self) -> Option<crate::solver::StopReason> {
+        self.team.solutions.get(&self.robot).and_then(|s| s.stop)
+    }
+
     /// The robot's poses, in the team's frame once [`Self::anchored`].
     pub fn estimate(&self) -> impl Iterator<Item = (u64, &SE3)> + '_ {
         self.keys.iter().copied().zip(&self.poses)

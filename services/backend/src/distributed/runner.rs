@@ -143,6 +143,10 @@ pub struct RunReport {
     /// `converged_small_decrease`, `max_iterations`); DGS: `dgs_converged` or
     /// `dgs_max_rounds` (its stages stop on their change thresholds).
     pub stop_reason: String,
+    /// Condensed method: per robot with a teammate (wire id), the stop reason of the team
+    /// solve it was told with its separator estimates (`none`: never told); `converged`
+    /// needs every one of them converged.
+    pub stop_reasons: BTreeMap<String, String>,
     /// Every robot settled (nothing in flight, nothing due) before `max_rounds`.
     pub settled: bool,
     pub dropped: u64,
@@ -728,15 +732,27 @@ pub fn run_over(
             .to_string(),
             true,
         ),
-        super::Method::Condensed => match agents
-            .values()
-            .find(|a| a.solves_team())
-            .and_then(|a| a.last_solve())
-        {
-            Some(s) => (s.stop_reason.as_str().to_string(), s.converged),
+        // The solve behind the solver's estimate: its own, or the one it inherited from
+        // a solver that left (the solutions it holds carry that solve's stop).
+        super::Method::Condensed => match agents.values().find(|a| a.solves_team()).and_then(|a| {
+            a.team_stop_reason()
+                .or(a.last_solve().map(|s| s.stop_reason))
+        }) {
+            Some(s) => (s.as_str().to_string(), s.is_converged()),
             None => ("no_solve".to_string(), false),
         },
     };
+    // What every robot was told: the team converged only if each robot with a teammate
+    // knows its estimate comes from a converged solve.
+    let (mut stop_reasons, mut everyone_told) = (BTreeMap::new(), true);
+    if options.agent.method == super::Method::Condensed {
+        for a in agents.values().filter(|a| a.neighbors().next().is_some()) {
+            let told = a.team_stop_reason();
+            everyone_told &= told.is_some_and(|s| s.is_converged());
+            let told = told.map_or("none", |s| s.as_str()).to_string();
+            stop_reasons.insert(robot_id(a.robot())?.to_string(), told);
+        }
+    }
     let stats: Vec<_> = agents.values().map(|a| a.stats()).collect();
     let mut resent_link = 0;
     if let Some(t) = transport.as_deref() {
@@ -778,8 +794,9 @@ pub fn run_over(
         chi2_gap: (distributed_chi2 - centralized_chi2) / centralized_chi2.max(f64::MIN_POSITIVE),
         ate_to_centralized: (sq / poses.max(1) as f64).sqrt(),
         time_s: start.elapsed().as_secs_f64(),
-        converged: converged && solver_converged,
+        converged: converged && solver_converged && everyone_told,
         stop_reason,
+        stop_reasons,
         settled: converged,
         dropped,
         resent: resent_link + stats.iter().map(|s| s.resent).sum::<u64>(),

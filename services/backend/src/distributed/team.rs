@@ -47,8 +47,10 @@ use std::sync::Arc;
 use doorslam_geometry::{key, LieGroup, SE3};
 use doorslam_ipc::wire::{
     Ack, Body, CompactPose, Estimate, GraphEdge, Header, Information, Kind, Message, PoseEstimate,
-    PoseEstimates, Route, SeparatorGraph, Stage, MAX_GRAPH_EDGES, MAX_POSE_ESTIMATES,
+    PoseEstimates, Route, SeparatorGraph, SolveStop, Stage, MAX_GRAPH_EDGES, MAX_POSE_ESTIMATES,
 };
+
+use crate::solver::{Criterion, StopReason};
 
 use super::condensed::{self, CondensedEdge};
 use super::link::{Arrival, Outbox, Received};
@@ -73,16 +75,33 @@ pub(crate) struct Solution {
     /// The version of the robot's graph the solve used.
     pub version: u64,
     pub round: u64,
+    /// How the team solve behind these estimates stopped: every robot learns whether the
+    /// estimate it settles on is the solver's converged one (None: not said, e.g. from an
+    /// older solver).
+    pub stop: Option<StopReason>,
     pub separators: BTreeMap<u64, SE3>,
 }
 
 impl Solution {
+    /// Equal but for the stop reason: the stop tells how the solve went, it does not move
+    /// the interior.
+    fn same_but_stop(a: Option<&Solution>, b: Option<&Solution>) -> bool {
+        let strip = |s: Option<&Solution>| {
+            s.map(|s| Solution {
+                stop: None,
+                ..s.clone()
+            })
+        };
+        strip(a) == strip(b)
+    }
+
     /// Applies what a message carried: another frame replaces, the same frame merges.
     fn apply(held: &mut Option<Solution>, carried: &Solution) {
         match held {
             Some(h) if h.anchor == carried.anchor => {
                 h.version = carried.version;
                 h.round = carried.round;
+                h.stop = carried.stop;
                 h.separators
                     .extend(carried.separators.iter().map(|(k, x)| (*k, *x)));
             }
@@ -251,6 +270,39 @@ impl TeamLink {
             }
         }
         view
+    }
+}
+
+/// A solver stop reason as the wire carries it in the estimates' flags.
+fn wire_stop(stop: StopReason) -> SolveStop {
+    match stop {
+        StopReason::Converged(Criterion::SmallCost) => SolveStop::ConvergedSmallCost,
+        StopReason::Converged(Criterion::SmallDecrease) => SolveStop::ConvergedSmallDecrease,
+        StopReason::Converged(Criterion::SmallPredictedDecrease) => {
+            SolveStop::ConvergedSmallPredictedDecrease
+        }
+        StopReason::MaxIterations => SolveStop::MaxIterations,
+        StopReason::NoDecrease => SolveStop::NoDecrease,
+        StopReason::NonFiniteStep => SolveStop::NonFiniteStep,
+        StopReason::Diverged => SolveStop::Diverged,
+        StopReason::GncNotSettled => SolveStop::GncNotSettled,
+        StopReason::NegativeCost => SolveStop::NegativeCost,
+    }
+}
+
+fn stop_reason(stop: SolveStop) -> StopReason {
+    match stop {
+        SolveStop::ConvergedSmallCost => StopReason::Converged(Criterion::SmallCost),
+        SolveStop::ConvergedSmallDecrease => StopReason::Converged(Criterion::SmallDecrease),
+        SolveStop::ConvergedSmallPredictedDecrease => {
+            StopReason::Converged(Criterion::SmallPredictedDecrease)
+        }
+        SolveStop::MaxIterations => StopReason::MaxIterations,
+        SolveStop::NoDecrease => StopReason::NoDecrease,
+        SolveStop::NonFiniteStep => StopReason::NonFiniteStep,
+        SolveStop::Diverged => StopReason::Diverged,
+        SolveStop::GncNotSettled => StopReason::GncNotSettled,
+        SolveStop::NegativeCost => StopReason::NegativeCost,
     }
 }
 
@@ -525,7 +577,8 @@ impl Agent {
         // robot of its subtree sent one and no graph changed for a step — for at most
         // twice `patience` (graphs of a large team take a link delivery per hop; a running
         // team's graphs may keep changing).
-        let missing = members(self.subtree()).any(|r| !self.team.graphs.contains_key(&r));
+        let missing = members(self.subtree()).any(|r| !self.team.graphs.contains_key(&r))
+            || self.referenced_graph_missing();
         let fresh = std::mem::take(&mut self.team.fresh);
         let since = *self.team.waiting_since.get_or_insert(self.now);
         if (missing || fresh) && self.now.saturating_sub(since) < 2 * self.options.patience {
@@ -567,6 +620,7 @@ impl Agent {
             .and_then(|k| key::robot(*k))
             .unwrap_or(self.robot);
         self.team.rounds += 1;
+        let stop = self.team.last_solve.as_ref().map(|s| s.stop_reason);
         let mut solutions: BTreeMap<u8, Solution> = BTreeMap::new();
         for (k, x) in separators {
             let Some(r) = key::robot(k) else { continue };
@@ -579,6 +633,7 @@ impl Agent {
                     anchor,
                     version: *version,
                     round: self.team.rounds,
+                    stop,
                     separators: BTreeMap::new(),
                 })
                 .separators
@@ -590,18 +645,44 @@ impl Agent {
         // for a solution that would never name them.
         for (&r, held) in &self.team.graphs {
             if let std::collections::btree_map::Entry::Vacant(slot) = solutions.entry(r) {
-                if let Some(alone) = alone(r, held, &self.team.graphs, self.team.rounds)? {
+                if let Some(alone) = alone(r, held, &self.team.graphs, self.team.rounds, stop)? {
                     slot.insert(alone);
                 }
             }
         }
         let solutions = keep_frame(self.team.solutions.get(&self.robot), self.robot, solutions);
-        if solutions.get(&self.robot) != self.team.solutions.get(&self.robot) {
+        if !Solution::same_but_stop(
+            solutions.get(&self.robot),
+            self.team.solutions.get(&self.robot),
+        ) {
             self.team.interior_dirty = true;
         }
         self.team.solutions = solutions;
         self.team.solved_with = versions;
         Ok(true)
+    }
+
+    /// Whether a robot of the connected team is known to exist and its graph is not here
+    /// yet: a closure of a graph held (or of this robot) names it, and it is not a
+    /// neighbour known to be out of range. Routes alone do not tell: while they are still
+    /// spreading, the subtree holds only the robots whose routes arrived, and a solve then
+    /// sends every robot estimates that the next solve, with the late graphs, replaces.
+    /// Every robot of the team is named by a closure in some graph of it, so once this is
+    /// false the solver holds every graph of its team (or waited its bounded time).
+    fn referenced_graph_missing(&self) -> bool {
+        let away = |r: u8| self.neighbors.get(&r).is_some_and(|n| !n.present);
+        let named = self
+            .team
+            .graphs
+            .values()
+            .flat_map(|h| h.edges.iter())
+            .flat_map(|e| [e.a, e.b])
+            .filter_map(key::robot)
+            .chain(self.neighbors.keys().copied());
+        let mut seen = BTreeSet::new();
+        named
+            .filter(|r| seen.insert(*r))
+            .any(|r| r != self.robot && !away(r) && !self.team.graphs.contains_key(&r))
     }
 
     /// Whether the solutions held came from a lower solver that used every graph in
@@ -864,7 +945,9 @@ impl Agent {
                     })
                     .map(|(k, x)| (*k, *x))
                     .collect();
-                if due.is_empty() && v.version != s.version {
+                // A new version or a new stop with no separator due: the first alone
+                // tells the robot (its flags carry the stop).
+                if due.is_empty() && (v.version != s.version || v.stop != s.stop) {
                     s.separators.iter().take(1).map(|(k, x)| (*k, *x)).collect()
                 } else {
                     due
@@ -1001,7 +1084,7 @@ impl Agent {
                         optimization: s.version,
                         round: s.round,
                         stage: Stage::Refine,
-                        flags: 0,
+                        flags: SolveStop::flags(s.stop.map(wire_stop)),
                         anchor: s.anchor,
                         estimates: values,
                     }),
@@ -1201,10 +1284,13 @@ impl Agent {
                     self.stats.ignored_stale += 1;
                     return Ok(false);
                 }
+                // The wire checked the code: a stop it names, or none.
+                let stop = SolveStop::from_flags(p.flags).ok().flatten();
                 let carried = Solution {
                     anchor: p.anchor,
                     version: p.optimization,
                     round: p.round,
+                    stop: stop.map(stop_reason),
                     separators: p
                         .estimates
                         .iter()
@@ -1217,7 +1303,7 @@ impl Agent {
                 let mut held = self.team.solutions.remove(&r);
                 let before = held.clone();
                 Solution::apply(&mut held, &carried);
-                if r == robot && held != before {
+                if r == robot && !Solution::same_but_stop(held.as_ref(), before.as_ref()) {
                     self.team.interior_dirty = true;
                 }
                 if let Some(s) = held {
@@ -1339,6 +1425,7 @@ fn alone(
     held: &Held,
     graphs: &BTreeMap<u8, Held>,
     round: u64,
+    team_stop: Option<StopReason>,
 ) -> Result<Option<Solution>, DpgoError> {
     let own: Vec<CondensedEdge> = held
         .edges
@@ -1355,25 +1442,31 @@ fn alone(
     let Some(first) = first else {
         return Ok(None);
     };
-    let separators: BTreeMap<u64, SE3> = if own.is_empty() {
-        BTreeMap::from([(first, SE3::identity())])
+    // Its own solve's stop when it needed one; a lone separator is exact as it is, and
+    // the robot is told how the team's solve (that left it alone) stopped.
+    let (separators, stop): (BTreeMap<u64, SE3>, _) = if own.is_empty() {
+        (BTreeMap::from([(first, SE3::identity())]), team_stop)
     } else {
         let graphs = BTreeMap::from([(r, own.as_slice())]);
-        condensed::solve_separators(
+        let solve = condensed::solve_separators(
             &graphs,
             first,
             None,
             &crate::solver::SolverOptions::default(),
-        )?
-        .estimates
-        .into_iter()
-        .filter(|(k, _)| key::robot(*k) == Some(r))
-        .collect()
+        )?;
+        let stop = solve.summary.map(|s| s.stop_reason).or(team_stop);
+        let separators = solve
+            .estimates
+            .into_iter()
+            .filter(|(k, _)| key::robot(*k) == Some(r))
+            .collect();
+        (separators, stop)
     };
     Ok(Some(Solution {
         anchor: r,
         version: held.version,
         round,
+        stop,
         separators,
     }))
 }

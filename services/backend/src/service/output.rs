@@ -95,15 +95,15 @@ pub struct TeamStatus {
     pub anchored: bool,
     /// The robot (key letter) whose first keyframe is the team frame.
     pub anchor: String,
-    /// Settled (nothing in flight or due, refinement done) and, when this robot solves the
-    /// team's separator graph, its last solve met the solver's convergence test (false
-    /// when it stopped on its iteration limit).
+    /// Settled (nothing in flight or due, refinement done) and the team solve behind this
+    /// robot's estimate met the solver's convergence test (false when it stopped on its
+    /// iteration limit), on the solver and on every robot it sends estimates to.
     pub converged: bool,
     /// Nothing in flight or due and refinement done, whatever the solver's stop reason.
     pub settled: bool,
-    /// Why this robot's last solve of the team's separator graph stopped
-    /// (`converged_small_decrease`, `max_iterations`, ...); null when this robot ran none
-    /// (another robot solves the team, or the DGS method).
+    /// Why the team solve behind this robot's estimate stopped (`converged_small_decrease`,
+    /// `max_iterations`, ...): the solver's own, or the one that came down with the
+    /// separator estimates; null before any solution, and with the DGS method.
     pub stop_reason: Option<String>,
     pub present: Vec<String>,
     pub neighbors: Vec<String>,
@@ -155,9 +155,9 @@ impl Outputs {
                 epoch: b.epoch(),
                 anchored: a.anchored(),
                 anchor: letter(a.anchor()),
-                converged: a.converged() && a.last_solve().is_none_or(|s| s.converged),
+                converged: a.converged() && a.team_stop_reason().is_none_or(|s| s.is_converged()),
                 settled: a.converged(),
-                stop_reason: a.last_solve().map(|s| s.stop_reason.as_str().to_string()),
+                stop_reason: a.team_stop_reason().map(|s| s.as_str().to_string()),
                 present: b.present().map(letter).collect(),
                 neighbors: a.neighbors().map(letter).collect(),
                 rejected_closures: a
