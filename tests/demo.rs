@@ -1,16 +1,20 @@
-//! Acceptance of the end-to-end demo (issues 22 and 31): `doorslam demo` with a small team
-//! at drone speed as separate processes, every robot a host of its own (network
+//! Acceptance of the end-to-end demo (issues 22, 31 and 33): `doorslam demo` with a small
+//! team at drone speed as separate processes, every robot a host of its own (network
 //! namespaces: needs root, as CI runs), and what its report says. One world is rendered
-//! and flown twice (`--world`): plainly, then with a kill and random loss.
+//! and flown twice (`--world`): plainly, then with a kill and random loss. The chaos run
+//! (both robots killed, the team's solver first, and random loss) is a test of its own,
+//! ignored until it passes reliably.
 //! - every robot ends in the team's frame, its error there bounded (bounds below, from
 //!   measured runs), and the team's estimate beats the odometry alone (`team_gain`);
 //! - no false (aliased or wrong) closure survives PCM;
 //! - the flights are the scenario: every robot re-visits places of the other and its own;
 //! - the CPU figures are possible (at most the machine's cores over the run), per process;
 //! - the ledgers' bytes match what the team links published;
-//! - killing one robot's processes mid-run: the other keeps running, the killed one
-//!   restarts from its journal and rejoins the team estimate; `--drop` loses about the
-//!   asked share of the packets between robots, and both are in the summary.
+//! - killing robots' processes mid-run (`--kill b@25`; the chaos run `--kill a@25 --kill
+//!   b@40`): each killed robot restarts from its journal and is back in the team's frame,
+//!   no false closure is kept, `--drop 0.3` loses about the asked share of the packets
+//!   between robots, and the summary (`kills[]`, `drop`, the timeline) and report.md list
+//!   every fault.
 
 use std::path::Path;
 use std::process::Command;
@@ -30,13 +34,26 @@ const DURATION_S: &str = "60";
 /// claim itself: the team beats odometry alone.
 const ATE_BOUND_M: f64 = 0.5;
 const KILL_ATE_BOUND_M: f64 = 0.5;
+/// The chaos run's kills (robot, flight seconds): the team's solver a first, then b, as in
+/// BENCHMARKS' 3-robot chaos run.
+const CHAOS_KILLS: [(&str, f64); 2] = [("a", 25.0), ("b", 40.0)];
+/// Bound of every robot's error in the team's frame after the chaos run (metres): see
+/// BENCHMARKS "The chaos run, repeated" for the measured runs it comes from.
+const CHAOS_ATE_BOUND_M: f64 = 0.5;
+/// Most seconds at base (the demo stops waiting once the team has converged and is
+/// quiet). After the chaos run the two restarted robots may need the meeting at base to
+/// merge again (measured: 11.5 s and 39.7 s; in two other runs they did not merge, one
+/// of them within 40 s, one within 90 s).
+const SETTLE_S: &str = "40";
+const CHAOS_SETTLE_S: &str = "90";
 const MIN_TEAM_GAIN: f64 = 1.0;
 /// Random loss asked for in the second run, and how far the measured share may be from
 /// it (thousands of packets: the binomial spread is ~1 %).
 const DROP: f64 = 0.3;
 const DROP_TOLERANCE: f64 = 0.05;
 
-fn demo(out: &Path, extra: &[&str]) -> Value {
+/// Runs `doorslam demo` with the test's team, at most `settle_s` at base, and `extra`.
+fn demo(out: &Path, settle_s: &str, extra: &[&str]) -> Value {
     assert!(
         unsafe { libc::geteuid() } == 0,
         "this test needs root: every robot of the demo is a network namespace (run the tests as root, as CI does)"
@@ -48,7 +65,7 @@ fn demo(out: &Path, extra: &[&str]) -> Value {
             "--robots",
             &robots,
             "--settle-s",
-            "40",
+            settle_s,
             "--json",
             "--out",
         ])
@@ -218,7 +235,7 @@ fn honest_cpu(s: &Value) {
 fn two_robots_build_one_map_and_a_killed_robot_rejoins_on_a_lossy_radio() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("run");
-    let s = demo(&out, &["--duration-s", DURATION_S]);
+    let s = demo(&out, SETTLE_S, &["--duration-s", DURATION_S]);
     assert_eq!(s["mode"], "netns");
     assert!(s["drop"].is_null() && s["kill"].is_null());
     one_map(&s, ATE_BOUND_M);
@@ -264,6 +281,7 @@ fn two_robots_build_one_map_and_a_killed_robot_rejoins_on_a_lossy_radio() {
     let drop = DROP.to_string();
     let s = demo(
         &again,
+        SETTLE_S,
         &[
             "--world",
             world.to_str().unwrap(),
@@ -273,20 +291,84 @@ fn two_robots_build_one_map_and_a_killed_robot_rejoins_on_a_lossy_radio() {
             &drop,
         ],
     );
-    let events: Vec<String> = s["timeline"]
-        .as_array()
-        .unwrap()
+    faults_survived(&again, &s, &[("b", 25.0)], KILL_ATE_BOUND_M);
+    ledgers_match_published(&again, &["a"]);
+}
+
+/// The chaos run of issue #33: both robots killed mid-flight, the team's solver (a, the
+/// lowest id) first, each restarted, 30 % of the packets lost. Not in CI yet: in 2 of 5
+/// runs on a shared 2-core machine robot b did not get back into the team's frame
+/// (BENCHMARKS, "The chaos run": b's back-end messages never reached a while its
+/// verification packets filled the lossy link). Run it with `--ignored`.
+#[test]
+#[ignore = "fails in about 2 runs of 5: a restarted robot can stay out of the team frame (BENCHMARKS, The chaos run)"]
+fn two_robots_keep_one_map_through_a_chaos_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("chaos");
+    let drop = DROP.to_string();
+    let kills: Vec<String> = CHAOS_KILLS
         .iter()
-        .map(|e| e["event"].as_str().unwrap_or("").to_string())
+        .map(|(r, t)| format!("{r}@{t}"))
         .collect();
-    assert!(events.iter().any(|e| e.starts_with("killed")), "{events:?}");
-    assert!(
-        events.iter().any(|e| e.starts_with("restarted")),
-        "{events:?}"
+    let s = demo(
+        &out,
+        CHAOS_SETTLE_S,
+        &[
+            "--duration-s",
+            DURATION_S,
+            "--kill",
+            &kills[0],
+            "--kill",
+            &kills[1],
+            "--drop",
+            &drop,
+        ],
     );
-    assert_eq!(s["per_robot"]["b"]["starts"], 2);
-    assert_eq!(s["kill"]["robot"], "b");
-    assert_eq!(s["kill"]["at_s"], 25.0);
+    faults_survived(&out, &s, &CHAOS_KILLS, CHAOS_ATE_BOUND_M);
+}
+
+/// A faulty run's summary and report against the `kills` asked (robot, flight seconds):
+/// every fault listed, every killed robot restarted from its journal and back in the
+/// team's frame, the asked share of packets lost, and the map kept (`one_map`: error in
+/// the team frame below `bound`, no false closure kept).
+fn faults_survived(out: &Path, s: &Value, kills_asked: &[(&str, f64)], bound: f64) {
+    let timeline = s["timeline"].as_array().unwrap();
+    let events_of = |robot: &str, what: &str| {
+        timeline
+            .iter()
+            .filter(|e| {
+                e["event"].as_str().unwrap_or("").starts_with(what)
+                    && e["robots"]
+                        .as_array()
+                        .is_some_and(|r| r.len() == 1 && r[0] == robot)
+            })
+            .count()
+    };
+    let kills = s["kills"].as_array().unwrap();
+    assert_eq!(kills.len(), kills_asked.len(), "kills: {kills:?}");
+    assert_eq!(s["kill"], kills[0], "kill is the first of kills");
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    for ((robot, at_s), k) in kills_asked.iter().zip(kills) {
+        assert_eq!(k["robot"], *robot, "{k}");
+        assert_eq!(k["at_s"], *at_s, "{k}");
+        assert_eq!(k["in_team_frame"], true, "{k}");
+        assert_eq!(events_of(robot, "killed"), 1, "{robot}: {timeline:?}");
+        assert_eq!(events_of(robot, "restarted"), 1, "{robot}: {timeline:?}");
+        assert_eq!(s["per_robot"][robot]["starts"], 2, "{robot}");
+        // The restarted robot recovered its journal.
+        let backend: Value = serde_json::from_str(
+            &std::fs::read_to_string(out.join(robot).join("backend.json")).unwrap(),
+        )
+        .unwrap();
+        assert!(
+            backend["report"]["recovered_keyframes"].as_u64().unwrap() > 0,
+            "{robot}: {backend}"
+        );
+        assert!(
+            report.contains(&format!("`--kill {robot}@{at_s}`")),
+            "report.md does not list the kill of {robot}"
+        );
+    }
     let d = &s["drop"];
     let (packets, dropped) = (
         d["packets"].as_u64().unwrap(),
@@ -297,16 +379,18 @@ fn two_robots_build_one_map_and_a_killed_robot_rejoins_on_a_lossy_radio() {
         packets > 100 && (share - DROP).abs() < DROP_TOLERANCE,
         "asked to drop {DROP}, dropped {dropped} of {packets}: {d}"
     );
-    // The restarted robot recovered its journal and is back in the team's frame.
-    let backend: Value =
-        serde_json::from_str(&std::fs::read_to_string(again.join("b/backend.json")).unwrap())
-            .unwrap();
-    assert!(
-        backend["report"]["recovered_keyframes"].as_u64().unwrap() > 0,
-        "{backend}"
+    assert!(report.contains(&format!("`--drop {DROP}`")), "report.md");
+    one_map(s, bound);
+    let c = &s["closures"];
+    println!(
+        "faults {kills_asked:?}: team-frame ATE {} m (a {} m, b {} m), closures true kept {} / rejected {}, false kept {}, dropped {dropped} of {packets}",
+        s["team_ate_m"],
+        s["per_robot"]["a"]["ate_team_frame_m"],
+        s["per_robot"]["b"]["ate_team_frame_m"],
+        c["true_accepted"],
+        c["true_rejected"],
+        c["false_accepted"]
     );
-    one_map(&s, KILL_ATE_BOUND_M);
-    ledgers_match_published(&again, &["a"]);
 }
 
 #[test]

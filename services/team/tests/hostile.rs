@@ -12,9 +12,8 @@
 
 use std::sync::atomic::Ordering;
 
-use doorslam_ipc::wire::{Body, Header, Kind, Message, RobotId};
+use doorslam_ipc::wire::{Kind, Message, RobotId};
 use doorslam_team::emulate::Bus;
-use doorslam_team::ledger::{Direction, LedgerFile};
 
 const HOSTILE_MESSAGES: u64 = 1_000_000;
 /// Messages z injects between two steps of the honest robots.
@@ -22,41 +21,8 @@ const BURST: u64 = 2_000;
 const KEYFRAMES: u64 = 40;
 
 mod common;
+use common::hostile::{accounted, closures_with_pose_value, met, rss_kb, Forger};
 use common::{config, robot, run, Robot};
-
-/// `x` and `y` have met: nothing of either is unacknowledged by the other, and one of
-/// them has `n` of the other's descriptors (the protocol gives one of the pair the
-/// descriptor sender's role, α).
-fn met(x: &Robot, y: &Robot, n: u64) -> bool {
-    let settled = |p: &Robot, q: &Robot| {
-        p.node
-            .session(&q.id)
-            .is_some_and(|s| Kind::ALL.iter().all(|&k| s.unacknowledged(k).is_empty()))
-    };
-    let has = |p: &Robot, q: &Robot| {
-        p.node
-            .session(&q.id)
-            .is_some_and(|s| s.delivered_descriptors().len() as u64 == n)
-    };
-    settled(x, y) && settled(y, x) && (has(x, y) || has(y, x))
-}
-
-/// Messages from `peer` the ledger saw: received (any kind) and dropped (any reason).
-fn accounted(ledger: &LedgerFile, peer: &str) -> (u64, u64) {
-    let received = ledger
-        .traffic
-        .iter()
-        .filter(|t| t.peer == peer && t.direction == Direction::Received)
-        .map(|t| t.counts.messages)
-        .sum();
-    let dropped = ledger
-        .dropped
-        .iter()
-        .filter(|d| d.peer == peer)
-        .map(|d| d.messages)
-        .sum();
-    (received, dropped)
-}
 
 /// Loop closures with z each robot handed to its back-end.
 fn closures_of_z(robots: &[&Robot]) -> Vec<u64> {
@@ -72,54 +38,6 @@ fn closures_of_z(robots: &[&Robot]) -> Vec<u64> {
                 .unwrap_or(0)
         })
         .collect()
-}
-
-/// Resident memory of this process, kB.
-fn rss_kb() -> u64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find_map(|l| l.strip_prefix("VmRSS:"))
-                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        })
-        .unwrap_or(0)
-}
-
-/// xorshift64*: the attack is the same on every run.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
-    }
-    fn below(&mut self, n: u64) -> u64 {
-        self.next() % n.max(1)
-    }
-}
-
-/// `m` encoded with its header (or kind) changed; `None` when the encoder refuses it.
-fn reencoded(m: &Message, header: Header) -> Option<Vec<u8>> {
-    Message::new(header, m.body.clone()).encode().ok()
-}
-
-/// A loop-closure message of z whose first pose value is replaced by `value`, in the
-/// encoded bytes (the encoder would refuse a NaN itself, a hostile peer need not).
-fn closures_with_pose_value(template: &Message, value: f32) -> Option<Vec<u8>> {
-    let Body::LoopClosures(c) = &template.body else {
-        return None;
-    };
-    let first = c.closures.first()?;
-    let marker = first.relative.raw()[0];
-    let mut bytes = template.encode().ok()?;
-    let at = bytes
-        .windows(4)
-        .position(|w| w == marker.to_le_bytes() || w == marker.to_be_bytes())?;
-    bytes[at..at + 4].copy_from_slice(&value.to_le_bytes());
-    Some(bytes)
 }
 
 #[test]
@@ -138,13 +56,13 @@ fn a_hostile_teammate_cannot_crash_stall_or_flood_the_team() {
     bus.join(&ida, &idz);
     bus.join(&idb, &idz);
     for _ in 0..3000 {
-        if met(&z, &a, KEYFRAMES / 2) && met(&z, &b, KEYFRAMES / 2) {
+        if met(&z.node, &a.node, KEYFRAMES / 2) && met(&z.node, &b.node, KEYFRAMES / 2) {
             break;
         }
         run(&mut [&mut a, &mut b, &mut z], &mut now, 1);
     }
     assert!(
-        met(&z, &a, KEYFRAMES / 2) && met(&z, &b, KEYFRAMES / 2),
+        met(&z.node, &a.node, KEYFRAMES / 2) && met(&z.node, &b.node, KEYFRAMES / 2),
         "z's honest meetings: with a {:?}, with b {:?}",
         z.node.session(&ida).map(|s| s.stats().clone()),
         z.node.session(&idb).map(|s| s.stats().clone())
@@ -175,11 +93,6 @@ fn a_hostile_teammate_cannot_crash_stall_or_flood_the_team() {
     let descriptors = received_by_z(Kind::Descriptors);
     // Closures for the NaN and absurd poses: the ones a and b verified with z.
     let closures = received_by_z(Kind::LoopClosures);
-    assert!(!closures.is_empty(), "z received no closures to forge from");
-    assert!(
-        !descriptors.is_empty(),
-        "z received no descriptors to forge from"
-    );
     // A NaN pose never decodes, whatever else the message gets right.
     if let Some(c) = closures.first() {
         let nan = closures_with_pose_value(c, f32::NAN).expect("the pose's bytes are found");
@@ -192,81 +105,23 @@ fn a_hostile_teammate_cannot_crash_stall_or_flood_the_team() {
     a.created.store(KEYFRAMES, Ordering::Release);
     b.created.store(KEYFRAMES, Ordering::Release);
     bus.join(&ida, &idb);
-    let mut rng = Rng(0x05ee_d0fa_77ac);
+    let mut forger = Forger::new(
+        0x05ee_d0fa_77ac,
+        honest.iter().map(|(_, m)| m.clone()).collect(),
+        descriptors,
+        closures,
+        ida.clone(),
+    );
     let mut injected = [0u64; 2];
-    let mut by_what = std::collections::BTreeMap::<&str, u64>::new();
-    let mut epoch_claims = 0u64;
-    let kinds: Vec<&str> = Kind::ALL.iter().map(|k| k.name()).collect();
     let rss_start = rss_kb();
     let mut rss_after_warmup = 0;
     let mut sent = 0u64;
     while sent < HOSTILE_MESSAGES {
         for _ in 0..BURST {
-            let (_, m) = &honest[rng.below(honest.len() as u64) as usize];
-            let original = m.encode().unwrap();
-            let mut h = m.header.clone();
-            let (what, kind, bytes): (&str, &str, Vec<u8>) = match rng.below(11) {
-                0 => {
-                    let n = rng.below(3000) as usize;
-                    ("garbage", kinds[rng.below(kinds.len() as u64) as usize], {
-                        (0..n).map(|_| rng.next() as u8).collect()
-                    })
-                }
-                1 => {
-                    let cut = rng.below(original.len() as u64) as usize;
-                    ("truncated", m.kind().name(), original[..cut].to_vec())
-                }
-                2 => {
-                    let mut bytes = original.clone();
-                    for _ in 0..1 + rng.below(8) {
-                        let i = rng.below(bytes.len() as u64) as usize;
-                        bytes[i] = rng.next() as u8;
-                    }
-                    // A flip in the header's epoch that still decodes claims a new epoch
-                    // of z: z's session restarts (only z can claim z's epoch), and its
-                    // older-epoch messages that follow are refused as stale.
-                    if Message::decode(&bytes).is_ok_and(|f| f.header.epoch > m.header.epoch) {
-                        epoch_claims += 1;
-                    }
-                    ("bit_flipped", m.kind().name(), bytes)
-                }
-                3 => ("replayed", m.kind().name(), original),
-                4 => {
-                    h.epoch = 0;
-                    ("stale_epoch", m.kind().name(), reencoded(m, h).unwrap())
-                }
-                5 => {
-                    h.sequence = h.sequence.wrapping_add(1 + rng.below(u64::MAX / 2));
-                    ("sequence_jump", m.kind().name(), reencoded(m, h).unwrap())
-                }
-                6 => {
-                    h.sender = ida.clone();
-                    ("wrong_sender", m.kind().name(), reencoded(m, h).unwrap())
-                }
-                7 => {
-                    let other = kinds[rng.below(kinds.len() as u64) as usize];
-                    ("wrong_kind", other, original)
-                }
-                8 | 9 if !closures.is_empty() => {
-                    let c = &closures[rng.below(closures.len() as u64) as usize];
-                    let value = if rng.below(2) == 0 { f32::NAN } else { 3.0e38 };
-                    match closures_with_pose_value(c, value) {
-                        Some(bytes) => ("absurd_closure", "loop_closures", bytes),
-                        None => ("replayed", c.kind().name(), c.encode().unwrap()),
-                    }
-                }
-                _ => {
-                    // A descriptor flood: well-formed descriptors under fresh sequences.
-                    let d = &descriptors[rng.below(descriptors.len() as u64) as usize];
-                    let mut h = d.header.clone();
-                    h.sequence = h.sequence.wrapping_add(1 + rng.below(1 << 20));
-                    ("descriptor_flood", "descriptors", reencoded(d, h).unwrap())
-                }
-            };
-            let to = if rng.below(2) == 0 { &ida } else { &idb };
+            let forgery = forger.next();
+            let to = if forger.rng.below(2) == 0 { &ida } else { &idb };
             injected[usize::from(to == &idb)] += 1;
-            *by_what.entry(what).or_default() += 1;
-            bus.inject(to, &idz, kind, bytes);
+            bus.inject(to, &idz, forgery.kind, forgery.bytes);
             sent += 1;
         }
         run(&mut [&mut a, &mut b], &mut now, 1);
@@ -278,18 +133,19 @@ fn a_hostile_teammate_cannot_crash_stall_or_flood_the_team() {
     // not the attack's end: it ran all along).
     let steps_during_attack = (HOSTILE_MESSAGES / BURST) as usize;
     for _ in 0..3000 {
-        if met(&a, &b, KEYFRAMES) {
+        if met(&a.node, &b.node, KEYFRAMES) {
             break;
         }
         run(&mut [&mut a, &mut b], &mut now, 1);
     }
     let rss_end = rss_kb();
     println!(
-        "hostile: {sent} messages ({by_what:?}; {epoch_claims} bit flips claim a newer epoch), {steps_during_attack} steps under attack; \
-         RSS {rss_start} kB at the start, {rss_after_warmup} kB after 100k, {rss_end} kB at the end"
+        "hostile: {sent} messages ({:?}; {} bit flips claim a newer epoch), {steps_during_attack} steps under attack; \
+         RSS {rss_start} kB at the start, {rss_after_warmup} kB after 100k, {rss_end} kB at the end",
+        forger.by_what, forger.epoch_claims
     );
     assert!(
-        met(&a, &b, KEYFRAMES),
+        met(&a.node, &b.node, KEYFRAMES),
         "a and b did not complete their meeting under the attack: a {:?}, b {:?}",
         a.node.session(&idb).map(|s| s.stats().clone()),
         b.node.session(&ida).map(|s| s.stats().clone())

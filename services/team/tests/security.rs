@@ -6,63 +6,25 @@
 //! cannot pass for a secure one.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use doorslam_ipc::wire::{Header, Hello, Kind, Message, RobotId};
-use doorslam_team::certs::{generate, CertsRequest, TeamCa, Validity};
-use doorslam_team::ledger::{Ledger, LedgerHandle};
-use doorslam_team::link::{LinkConfig, LinkMode};
-use doorslam_team::protocol::{Identity, ProtocolConfig};
-use doorslam_team::security::{Holder, Security, TlsSection};
-use doorslam_team::standin::{EchoBackend, SimPlaces, SimWorld, TruthVerifier};
-use doorslam_team::zenoh_link::{ZenohLink, ZenohLinkConfig};
-use doorslam_team::{Node, Pieces};
+use doorslam_team::certs::{TeamCa, Validity};
+use doorslam_team::security::{Security, TlsSection};
+use doorslam_team::zenoh_link::ZenohLink;
+use doorslam_team::Node;
 use zenoh::{Session, Wait};
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
+mod common;
+use common::tls::{checked, free_port, make_certs, make_certs_with, tls, zenoh_robot};
 
 fn id(s: &str) -> RobotId {
     RobotId::new(s).unwrap()
 }
 
-/// Certificates of `team` for `robots` in `dir`; the roster is `roster`.
-fn tls(dir: &Path, robot: &str, roster: &[&str]) -> TlsSection {
-    let d = dir.join("robots").join(robot);
-    TlsSection {
-        ca: dir.join("ca.pem"),
-        cert: d.join("cert.pem"),
-        key: d.join("key.pem"),
-        robots: roster.iter().map(|s| s.to_string()).collect(),
-    }
-}
-
-fn make_certs(dir: &Path, team: &str, robots: &[&str]) {
-    make_certs_with(dir, team, robots, false);
-}
-
-fn make_certs_with(dir: &Path, team: &str, robots: &[&str], clockless: bool) {
-    generate(
-        dir,
-        &CertsRequest {
-            team: team.into(),
-            robots: robots.iter().map(|s| s.to_string()).collect(),
-            routers: vec![],
-            days: 2,
-            clockless,
-        },
-    )
-    .unwrap();
-}
-
 const KEYFRAMES: u64 = 60;
 
+/// A robot of the team (the stand-ins, `KEYFRAMES` made) on a Zenoh session with `security`.
 fn robot(
     team: &str,
     name: &str,
@@ -71,45 +33,8 @@ fn robot(
     connect: Vec<String>,
     security: Security,
 ) -> (Node, ZenohLink) {
-    let world = SimWorld::default();
-    let me = id(name);
-    let place = SimPlaces::new(world, index, 50);
-    place.created().store(KEYFRAMES, Ordering::Release);
-    let node = Node::new(
-        Identity {
-            id: me.clone(),
-            robot: index,
-            epoch: 1,
-        },
-        ProtocolConfig {
-            retransmit_ms: 300,
-            ..ProtocolConfig::default()
-        },
-        LedgerHandle::new(Ledger::new(name, team, 1, 752 * 480).over_tls()),
-        Pieces {
-            place: Box::new(place),
-            verifier: Box::new(TruthVerifier::from_world(world)),
-            backend: Box::new(EchoBackend::new(index)),
-        },
-    );
-    let link = ZenohLink::open(&ZenohLinkConfig {
-        team: team.into(),
-        me,
-        link: LinkConfig {
-            listen,
-            connect,
-            multicast_scouting: false,
-        },
-        mode: LinkMode::Peer,
-        lease_ms: Some(2000),
-        security: Some(security),
-    })
-    .unwrap();
-    (node, link)
-}
-
-fn checked(section: &TlsSection, team: &str, robot: &str) -> Security {
-    Security::check(section, team, &Holder::Robot(id(robot))).unwrap()
+    let r = zenoh_robot(team, name, index, KEYFRAMES, listen, connect, security);
+    (r.node, r.link)
 }
 
 /// A malicious session: TLS with `section`'s files, its own access control switched off

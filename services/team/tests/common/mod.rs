@@ -1,6 +1,11 @@
 //! Robots on the in-process link emulation, shared by the protocol tests (`protocol.rs`,
-//! `hostile.rs`). Each test binary uses a part of it, hence the `dead_code` allowance.
+//! `hostile.rs`), and the hostile teammate's forgeries ([`hostile`], also used over real
+//! Zenoh by `hostile_zenoh.rs`). Each test binary uses a part of it, hence the `dead_code`
+//! allowance.
 #![allow(dead_code)]
+
+pub mod hostile;
+pub mod tls;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
