@@ -12,6 +12,7 @@ use doorslam_ipc::wire::{Kind, RobotId};
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::qos::Priority;
 use zenoh::sample::{Sample, SampleKind};
 use zenoh::{Session, Wait};
 
@@ -180,6 +181,25 @@ impl ZenohLink {
     }
 }
 
+/// The Zenoh transmission queue of a message kind. Zenoh serves its queues in priority
+/// order, so on a radio that cannot keep up, the small messages that keep the team
+/// together (sessions, acknowledgements, routes, graphs, estimates, closures) do not wait
+/// behind, nor are dropped for, the bulk of verification packets, which are resent
+/// anyway and only cost a candidate closure some delay.
+fn priority(kind: Kind) -> Priority {
+    match kind {
+        Kind::VerificationFeatures => Priority::DataLow,
+        Kind::Descriptors | Kind::Matches => Priority::Data,
+        Kind::Hello
+        | Kind::Ack
+        | Kind::LoopClosures
+        | Kind::PoseEstimates
+        | Kind::SeparatorGraph
+        | Kind::Route
+        | Kind::TeamMap => Priority::DataHigh,
+    }
+}
+
 impl Link for ZenohLink {
     fn publish(&mut self, to: &RobotId, kind: Kind, bytes: &[u8]) -> Result<(), LinkError> {
         let err = |reason: String| LinkError::Publish {
@@ -195,6 +215,7 @@ impl Link for ZenohLink {
                 let p = self
                     .session
                     .declare_publisher(key)
+                    .priority(priority(kind))
                     .wait()
                     .map_err(|e| err(e.to_string()))?;
                 v.insert(p)
