@@ -21,7 +21,7 @@ const BURST: u64 = 2_000;
 const KEYFRAMES: u64 = 40;
 
 mod common;
-use common::hostile::{accounted, closures_with_pose_value, met, rss_kb, Forger};
+use common::hostile::{assert_attacker_accounted, closures_with_pose_value, met, rss_kb, Forger};
 use common::{config, robot, run, Robot};
 
 /// Loop closures with z each robot handed to its back-end.
@@ -155,33 +155,7 @@ fn a_hostile_teammate_cannot_crash_stall_or_flood_the_team() {
         (&b, honest_to_b, injected[1]),
     ] {
         let ledger = r.node.ledger().lock().to_file();
-        let (received, dropped) = accounted(&ledger, "z");
-        println!(
-            "{}: z sent {} honest + {injected} hostile; ledger: {received} received, {dropped} dropped {:?}",
-            r.id,
-            honest_to,
-            ledger
-                .dropped
-                .iter()
-                .filter(|d| d.peer == "z")
-                .map(|d| (d.reason.as_str(), d.messages))
-                .collect::<Vec<_>>()
-        );
-        // Every message of z is in the ledger: delivered or dropped with a reason (a message
-        // received and then found a duplicate is in both).
-        assert!(
-            received + dropped >= honest_to + injected,
-            "{}: {} of z's messages are not in the ledger",
-            r.id,
-            honest_to + injected - received - dropped
-        );
-        // The hostile bulk is refused, not taken in: at most one in eleven (the floods'
-        // new sequences and the replays' first copies) can be new to the delivery layer.
-        assert!(
-            dropped >= injected / 2,
-            "{}: only {dropped} of {injected} hostile messages refused",
-            r.id
-        );
+        assert_attacker_accounted(r.id.as_str(), &ledger, honest_to, injected);
         // The honest exchange with a and b was not refused for z's sake.
         let d = &ledger.dropped;
         let honest_peer = if r.id == ida { "b" } else { "a" };

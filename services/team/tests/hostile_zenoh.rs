@@ -31,7 +31,7 @@ use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
 mod common;
-use common::hostile::{accounted, met, rss_kb, Forger};
+use common::hostile::{accounted, assert_attacker_accounted, met, rss_kb, Forger};
 use common::tls::{checked, free_port, make_certs, tls, zenoh_robot, ZenohRobot};
 
 /// Forged messages in CI (about 10 s on 2 shared cores); `DOORSLAM_HOSTILE_MESSAGES`
@@ -280,34 +280,14 @@ fn a_hostile_teammate_floods_over_mutual_tls_and_the_team_carries_on() {
     ] {
         let me = r.node.identity().id.clone();
         let ledger = r.node.ledger().lock().to_file();
-        let (received, dropped) = accounted(&ledger, "z");
+        assert_attacker_accounted(me.as_str(), &ledger, honest_to, injected);
         let refused_bytes: u64 = ledger
             .dropped
             .iter()
             .filter(|d| d.peer == "z")
             .map(|d| d.bytes)
             .sum();
-        println!(
-            "{me}: z sent {honest_to} honest + {injected} hostile; ledger: {received} received, \
-             {dropped} dropped ({refused_bytes} bytes) {:?}",
-            ledger
-                .dropped
-                .iter()
-                .filter(|d| d.peer == "z")
-                .map(|d| (d.reason.as_str(), d.messages))
-                .collect::<Vec<_>>()
-        );
-        // Every message of z reached the ledger (the flood blocked rather than lose any):
-        // delivered or dropped with a reason.
-        assert!(
-            received + dropped >= honest_to + injected,
-            "{me}: {} of z's messages are not in the ledger",
-            honest_to + injected - received - dropped
-        );
-        assert!(
-            dropped >= injected / 2,
-            "{me}: only {dropped} of {injected} hostile messages refused"
-        );
+        println!("{me}: {refused_bytes} bytes of z refused");
         assert!(refused_bytes > 0, "{me}: refused bytes not counted");
         // Nothing of the honest peer was refused for z's sake during the attack.
         assert_eq!(

@@ -178,6 +178,34 @@ pub fn accounted(ledger: &LedgerFile, peer: &str) -> (u64, u64) {
     (received, dropped)
 }
 
+/// What robot `me`'s ledger says of the attacker z after the attack, asserted: every message
+/// z sent (`honest` + `injected`) is in it, delivered or dropped with a reason (a message
+/// received and then found a duplicate is in both), and the hostile bulk is refused, not
+/// taken in: at most one in eleven forgeries (the floods' new sequences and the replays'
+/// first copies) can be new to the delivery layer. Prints z's refusals by reason.
+pub fn assert_attacker_accounted(me: &str, ledger: &LedgerFile, honest: u64, injected: u64) {
+    let (received, dropped) = accounted(ledger, "z");
+    println!(
+        "{me}: z sent {honest} honest + {injected} hostile; ledger: {received} received, \
+         {dropped} dropped {:?}",
+        ledger
+            .dropped
+            .iter()
+            .filter(|d| d.peer == "z")
+            .map(|d| (d.reason.as_str(), d.messages))
+            .collect::<Vec<_>>()
+    );
+    assert!(
+        received + dropped >= honest + injected,
+        "{me}: {} of z's messages are not in the ledger",
+        honest + injected - received - dropped
+    );
+    assert!(
+        dropped >= injected / 2,
+        "{me}: only {dropped} of {injected} hostile messages refused"
+    );
+}
+
 /// `x` and `y` have met: nothing of either is unacknowledged by the other, and one of
 /// them has `n` of the other's descriptors (the protocol gives one of the pair the
 /// descriptor sender's role, α).
