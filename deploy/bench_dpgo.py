@@ -184,7 +184,8 @@ def table_kinds(doorslam, all_teams):
     LINK_TABLE[0] = True
     for name, files, extra, _ in all_teams:
         for link, largs in [("direct", ["--link", "direct"]), ("session", [])]:
-            for copy, cargs in [("no", []), ("yes", ["--standby-copy"])]:
+            # The copy is on by default (`--no-standby-copy` turns it off).
+            for copy, cargs in [("no", ["--no-standby-copy"]), ("yes", [])]:
                 r = run(doorslam, "dpgo", *files, *extra, *largs, *cargs)
                 told = set(r.get("stop_reasons", {}).values())
                 cells = [f"{r['bytes_by_kind'].get(k, 0):,}" for k in kinds]

@@ -20,11 +20,18 @@ the robots revisit the same places every lap: place recognition, verification an
 back-end see every place many times (closures accumulate), the team link has its
 meetings, but nothing new is seen after the first lap.
 
-Samples go to `<out>/soak.csv` (flight s, wall s, robot, process, pid, rss_kb, fds);
+Samples go to `<out>/soak.csv` (flight s, wall s, robot, process, pid, rss_kb, fds, and
+RSS split as the kernel counts it: rss_anon_kb private memory (heap, stacks), rss_file_kb
+mapped files (the binary, libraries), rss_shmem_kb shared memory (iceoryx2's segments,
+counted in every process that touched their pages));
 the summary (per process: RSS and open files at the 10th minute of flight and at the
-end, growth, peak) is printed as a table and written to `<out>/soak.json`. Exit status 1
-when a process's RSS grew by 10 % or more after the 10th minute, or a robot's process
-died.
+end, growth, peak, and the growth of each part) is printed as a table and written to
+`<out>/soak.json`. Exit status 1 when a process's RSS grew by 10 % or more after the
+10th minute, or a robot's process died, or a robot's pipeline stalled: flat memory of a
+pipeline that stopped working proves nothing, so each sample also records the frames the
+front-end has processed and the keyframes the back-end holds (`frontend.json`,
+`backend.json`), and a robot whose front-end or back-end made no progress over the last
+`STALL_FLIGHT_S` of flight (or stopped rewriting its status file) is named as stalled.
 """
 
 import argparse
@@ -40,6 +47,8 @@ from pathlib import Path
 
 WARMUP_FLIGHT_S = 600.0
 MAX_GROWTH = 0.10
+# A front-end or back-end that made no progress over this much flight (s) stalled.
+STALL_FLIGHT_S = 600.0
 
 
 def free_port():
@@ -153,8 +162,19 @@ def process_name(pid):
     return Path(args[0]).name if args else None
 
 
+def progress(out, name):
+    """(front-end frames processed, back-end keyframes), None where unreadable."""
+    def read(f, key):
+        try:
+            return json.loads((out / name / f).read_text()).get(key)
+        except (OSError, ValueError):
+            return None
+    return read("frontend.json", "frames"), read("backend.json", "keyframes")
+
+
 def group(pgid):
-    """(pid, name, rss_kb, fds) of every process in the process group."""
+    """(pid, name, rss_kb, fds, anon_kb, file_kb, shmem_kb) of every process in the
+    process group."""
     out = []
     for d in Path("/proc").iterdir():
         if not d.name.isdigit():
@@ -164,16 +184,19 @@ def group(pgid):
             fields = stat[stat.rindex(")") + 2 :].split()
             if int(fields[2]) != pgid or fields[0] == "Z":
                 continue
-            rss = 0
+            kb = {}
             for line in (d / "status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
-                    rss = int(line.split()[1])
+                key = line.split(":", 1)[0]
+                if key in ("VmRSS", "RssAnon", "RssFile", "RssShmem"):
+                    kb[key] = int(line.split()[1])
+            rss = kb.get("VmRSS", 0)
             fds = len(os.listdir(d / "fd"))
             name = process_name(int(d.name))
         except (OSError, ValueError, IndexError):
             continue
         if name:
-            out.append((int(d.name), name, rss, fds))
+            out.append((int(d.name), name, rss, fds, kb.get("RssAnon", 0),
+                        kb.get("RssFile", 0), kb.get("RssShmem", 0)))
     return out
 
 
@@ -228,18 +251,22 @@ def main():
           f"(about {flight_s / a.rate / 60:.0f} min), samples in {out}/soak.csv", file=sys.stderr)
 
     samples, died = [], []
+    seen = {name: [] for name in names}  # (flight s, frames, keyframes) per sample
     t0 = time.time()
     with open(out / "soak.csv", "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["flight_s", "wall_s", "robot", "process", "pid", "rss_kb", "fds"])
+        w.writerow(["flight_s", "wall_s", "robot", "process", "pid", "rss_kb", "fds",
+                    "rss_anon_kb", "rss_file_kb", "rss_shmem_kb"])
         while True:
             now = time.time()
             flight = (now - start_ms / 1000) * a.rate
             for name, p, _ in robots:
+                seen[name].append((flight, *progress(out, name)))
                 if p.poll() is not None:
                     died.append(f"robot {name}: doorslam up exited ({p.returncode}) at {flight:.0f} s of flight")
-                for pid, proc, rss, fds in group(p.pid):
-                    row = (round(flight, 1), round(now - t0, 1), name, proc, pid, rss, fds)
+                for pid, proc, rss, fds, anon, mapped, shmem in group(p.pid):
+                    row = (round(flight, 1), round(now - t0, 1), name, proc, pid, rss, fds,
+                           anon, mapped, shmem)
                     w.writerow(row)
                     samples.append(row)
             f.flush()
@@ -260,10 +287,30 @@ def main():
             died.append(f"robot {name}: did not stop within 60 s of SIGINT")
         log.close()
 
+    # Progress: the front-end's frames and the back-end's keyframes must still move in the
+    # last STALL_FLIGHT_S of the route (the replay stops at its end).
+    stalled, progress_rows = [], {}
+    for name in names:
+        xs = [x for x in seen[name] if x[0] <= flight_s]
+        if not xs:
+            continue
+        last = xs[-1]
+        before = [x for x in xs if x[0] <= last[0] - STALL_FLIGHT_S] or xs[:1]
+        ref = before[-1]
+        at10 = next((x for x in xs if x[0] >= WARMUP_FLIGHT_S), last)
+        progress_rows[name] = {
+            "frames_at_10_min": at10[1], "frames_end": last[1],
+            "keyframes_at_10_min": at10[2], "keyframes_end": last[2],
+        }
+        for what, i in (("front-end frames", 1), ("back-end keyframes", 2)):
+            if ref[i] is not None and last[i] is not None and last[i] <= ref[i]:
+                stalled.append(f"robot {name}: {what} stuck at {last[i]} from {ref[0] / 60:.0f} "
+                               f"to {last[0] / 60:.0f} min of flight")
+
     # Per process: the sample at the 10th minute of flight, the last one, the peak.
     per = {}
-    for flight, _, robot, proc, pid, rss, fds in samples:
-        per.setdefault((robot, proc), []).append((flight, pid, rss, fds))
+    for flight, _, robot, proc, pid, rss, fds, anon, mapped, shmem in samples:
+        per.setdefault((robot, proc), []).append((flight, pid, rss, fds, anon, mapped, shmem))
     rows, grew = [], []
     for (robot, proc), xs in sorted(per.items()):
         after = [x for x in xs if x[0] >= WARMUP_FLIGHT_S]
@@ -283,6 +330,13 @@ def main():
             "fds_end": last[3],
             "fds_peak": max(x[3] for x in xs),
             "end_flight_s": last[0],
+            # What grew: private memory, mapped files, shared memory (kB, end - 10 min).
+            "anon_kb_at_10_min": first[4],
+            "anon_kb_end": last[4],
+            "anon_growth": round((last[4] - first[4]) / max(first[4], 1), 4),
+            "file_kb_delta": last[5] - first[5],
+            "shmem_kb_at_10_min": first[6],
+            "shmem_kb_end": last[6],
         }
         rows.append(row)
         if growth >= MAX_GROWTH:
@@ -306,18 +360,26 @@ def main():
         "processes": rows,
         "grew": grew,
         "died": died,
-        "ok": not grew and not died,
+        "progress": progress_rows,
+        "stalled": stalled,
+        "ok": not grew and not died and not stalled,
     }
     (out / "soak.json").write_text(json.dumps(summary, indent=1) + "\n")
-    print(f"| robot | process | RSS at 10 min (kB) | RSS end (kB) | growth | RSS peak (kB) | open files 10 min / end / peak |")
-    print("|---|---|---|---|---|---|---|")
+    print(f"| robot | process | RSS at 10 min (kB) | RSS end (kB) | growth | RSS peak (kB) | open files 10 min / end / peak "
+          f"| private (anon) 10 min / end (kB) | shared memory 10 min / end (kB) |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['robot']} | {r['process']} | {r['rss_kb_at_10_min']} | {r['rss_kb_end']} | "
-              f"{100 * r['rss_growth']:+.1f} % | {r['rss_kb_peak']} | {r['fds_at_10_min']} / {r['fds_end']} / {r['fds_peak']} |")
+              f"{100 * r['rss_growth']:+.1f} % | {r['rss_kb_peak']} | {r['fds_at_10_min']} / {r['fds_end']} / {r['fds_peak']} "
+              f"| {r['anon_kb_at_10_min']} / {r['anon_kb_end']} ({100 * r['anon_growth']:+.1f} %) "
+              f"| {r['shmem_kb_at_10_min']} / {r['shmem_kb_end']} |")
     for name in names:
         cam = status.get(name, {}).get("camera.json", {})
         print(f"{name}: camera {json.dumps(cam)[:300]}")
-    for line in grew + died:
+    for name, r in progress_rows.items():
+        print(f"{name}: front-end frames {r['frames_at_10_min']} at 10 min, {r['frames_end']} at the end; "
+              f"back-end keyframes {r['keyframes_at_10_min']} / {r['keyframes_end']}")
+    for line in grew + died + stalled:
         print(f"soak: {line}", file=sys.stderr)
     print(f"soak: {'flat' if summary['ok'] else 'NOT flat'}; {out}/soak.json", file=sys.stderr)
     sys.exit(0 if summary["ok"] else 1)

@@ -67,12 +67,22 @@ impl Default for SimKeyframesSection {
     }
 }
 
-/// `[up]`: which services `doorslam up` starts, in this order.
-#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+/// `[up]`: which services `doorslam up` starts, in this order, and how often each hands
+/// freed memory back.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct UpSection {
     #[serde(default = "default_services")]
     pub services: Vec<String>,
+    /// Every service process hands the allocator's free memory back to the system this
+    /// often (glibc `malloc_trim(0)`; 0: never). Without it freed memory stays resident:
+    /// an hour's soak measured the front-end holding 12 MB of heap for 3.9 MB in use.
+    #[serde(default = "default_trim_every_s")]
+    pub trim_every_s: f64,
+}
+
+fn default_trim_every_s() -> f64 {
+    10.0
 }
 
 fn default_services() -> Vec<String> {
@@ -85,6 +95,7 @@ impl Default for UpSection {
     fn default() -> Self {
         Self {
             services: default_services(),
+            trim_every_s: default_trim_every_s(),
         }
     }
 }
@@ -181,6 +192,10 @@ impl RobotConfig {
             bail!("sim_keyframes.every must be >= 1");
         }
         self.ros2.validate(id)?;
+        let trim = self.up.trim_every_s;
+        if !(trim == 0.0 || (1.0..=3600.0).contains(&trim)) {
+            bail!("up.trim_every_s = {trim}: 0 (never) or from 1 to 3600 s");
+        }
         let ros2_listed = self.up.services.iter().any(|s| s == "ros2");
         if ros2_listed && !self.ros2.enabled {
             bail!("up.services lists ros2 but ros2.enabled = false: set ros2.enabled = true (then `up` starts it without the list)");

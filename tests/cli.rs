@@ -190,6 +190,28 @@ fn config_errors_name_the_file_and_the_key() {
     ]));
     assert!(err.contains("robot.id"), "{err}");
 
+    // The memory bounds of the soak's fixes: out of range, refused by name.
+    for (toml, key) in [
+        ("[up]\ntrim_every_s = 0.5\n", "up.trim_every_s"),
+        (
+            "[rendezvous]\nfeatures_in_memory = 0\n",
+            "rendezvous.features_in_memory",
+        ),
+        (
+            "[backend]\nintra_pcm_window = 1\n",
+            "backend.intra_pcm_window",
+        ),
+    ] {
+        std::fs::write(&cfg, toml).unwrap();
+        let err = stderr(&doorslam(&[
+            "service",
+            "camera",
+            "--config",
+            cfg.to_str().unwrap(),
+        ]));
+        assert!(err.contains(key), "{err}");
+    }
+
     let err = stderr(&doorslam(&[
         "service",
         "camera",
@@ -274,10 +296,12 @@ fn backend_timeouts_are_seconds_and_the_step_keys_are_refused_by_name() {
     assert_eq!(agent.resend_after, std::time::Duration::from_millis(3500));
     assert_eq!(agent.patience, std::time::Duration::from_secs(8));
     assert_eq!(agent.max_stage, std::time::Duration::from_secs(90));
-    assert!(!agent.standby_copy, "the standby copy is off by default");
-    let c = parse("[backend]\nstandby_copy = true\n").unwrap();
+    assert!(agent.standby_copy, "the standby copy is on by default");
+    let c = parse("[backend]\nintra_pcm_window = 128\n").unwrap();
+    assert_eq!(c.backend.for_robot("a", 0).intra_pcm.2, 128);
+    let c = parse("[backend]\nstandby_copy = false\n").unwrap();
     assert!(
-        c.backend
+        !c.backend
             .for_robot("a", 0)
             .distributed
             .unwrap()
@@ -296,6 +320,8 @@ fn backend_timeouts_are_seconds_and_the_step_keys_are_refused_by_name() {
         "patience_s = 0.0",
         "resend_after_s = -1.0",
         "max_stage_s = nan",
+        "intra_pcm_window = 0",
+        "intra_pcm_window = 100000",
     ] {
         let err = parse(&format!("[backend]\n{bad}\n")).unwrap_err();
         let key = bad.split(' ').next().unwrap();

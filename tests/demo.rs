@@ -52,6 +52,33 @@ const MIN_TEAM_GAIN: f64 = 1.0;
 const DROP: f64 = 0.3;
 const DROP_TOLERANCE: f64 = 0.05;
 
+/// A test's run folders: removed when the test passes, kept (and named on stderr) when it
+/// fails, so that a failed run's logs, status files and estimates can be looked at.
+struct RunDir(Option<tempfile::TempDir>);
+
+impl RunDir {
+    fn new() -> Self {
+        Self(Some(tempfile::tempdir().unwrap()))
+    }
+
+    fn path(&self) -> &Path {
+        self.0.as_ref().map(|d| d.path()).unwrap()
+    }
+}
+
+impl Drop for RunDir {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            if let Some(dir) = self.0.take() {
+                eprintln!(
+                    "the failed test's run folders are kept: {}",
+                    dir.keep().display()
+                );
+            }
+        }
+    }
+}
+
 /// Runs `doorslam demo` with the test's team, at most `settle_s` at base, and `extra`.
 fn demo(out: &Path, settle_s: &str, extra: &[&str]) -> Value {
     assert!(
@@ -233,7 +260,7 @@ fn honest_cpu(s: &Value) {
 
 #[test]
 fn two_robots_build_one_map_and_a_killed_robot_rejoins_on_a_lossy_radio() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = RunDir::new();
     let out = dir.path().join("run");
     let s = demo(&out, SETTLE_S, &["--duration-s", DURATION_S]);
     assert_eq!(s["mode"], "netns");
@@ -296,14 +323,16 @@ fn two_robots_build_one_map_and_a_killed_robot_rejoins_on_a_lossy_radio() {
 }
 
 /// The chaos run of issue #33: both robots killed mid-flight, the team's solver (a, the
-/// lowest id) first, each restarted, 30 % of the packets lost. Not in CI yet: in 2 of 5
-/// runs on a shared 2-core machine robot b did not get back into the team's frame
-/// (BENCHMARKS, "The chaos run": b's back-end messages never reached a while its
-/// verification packets filled the lossy link). Run it with `--ignored`.
+/// lowest id) first, each restarted, 30 % of the packets lost. Not in CI yet (BENCHMARKS,
+/// "Why a robot sat beside the team"): two causes of failure are mended (the settle ended
+/// with estimates still on the radio, a robot misplaced against the other; a kill lost the
+/// odometry edge into a keyframe, which then hung on the weak restart prior, 16 m off),
+/// the second after the runs there had shown it; too few runs with both mends to call it
+/// reliable. Run it with `--ignored`.
 #[test]
-#[ignore = "fails in about 2 runs of 5: a restarted robot can stay out of the team frame (BENCHMARKS, The chaos run)"]
+#[ignore = "not yet shown reliable: failed 1 run of 8 (a kill-lost odometry edge, mended since, few runs with the mend; BENCHMARKS, Why a robot sat beside the team)"]
 fn two_robots_keep_one_map_through_a_chaos_run() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = RunDir::new();
     let out = dir.path().join("chaos");
     let drop = DROP.to_string();
     let kills: Vec<String> = CHAOS_KILLS
@@ -332,6 +361,26 @@ fn two_robots_keep_one_map_through_a_chaos_run() {
 /// team's frame, the asked share of packets lost, and the map kept (`one_map`: error in
 /// the team frame below `bound`, no false closure kept).
 fn faults_survived(out: &Path, s: &Value, kills_asked: &[(&str, f64)], bound: f64) {
+    // The figures first, so a failed run says them too.
+    for r in ["a", "b"] {
+        let x = &s["per_robot"][r];
+        println!(
+            "{r}: team frame {} (ATE {} m; own alignment {} m), anchor {}, converged {}",
+            x["in_team_frame"], x["ate_team_frame_m"], x["ate_team_m"], x["anchor"], x["converged"]
+        );
+    }
+    println!(
+        "converged at base {} after {} s at base",
+        s["converged_at_base"], s["durations"]["settle_s"]
+    );
+    for e in s["timeline"].as_array().unwrap() {
+        if e["event"]
+            .as_str()
+            .is_some_and(|e| e.starts_with("at base"))
+        {
+            println!("{} s: {}", e["t_s"], e["event"]);
+        }
+    }
     let timeline = s["timeline"].as_array().unwrap();
     let events_of = |robot: &str, what: &str| {
         timeline

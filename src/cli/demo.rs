@@ -89,7 +89,7 @@ fn robot_line(r: &demo::RobotSnapshot) -> String {
         _ => String::new(),
     };
     format!(
-        "{:?}  {frames}keyframes {:3}  rendezvous {:2}  closures {:3} ({} rejected)  rounds {:3}  sent {:7.1} kB{}",
+        "{:?}  {frames}keyframes {:3}  rendezvous {:2}  closures {:3} ({} rejected)  rounds {:3}  sent {:7.1} kB{}{}{}",
         r.state,
         r.keyframes,
         r.rendezvous,
@@ -97,6 +97,12 @@ fn robot_line(r: &demo::RobotSnapshot) -> String {
         r.rejected,
         r.rounds,
         r.bytes_sent as f64 / 1e3,
+        r.round.map_or(String::new(), |n| format!("  on solve {n}")),
+        if r.unacknowledged > 0 {
+            format!("  {} unacknowledged", r.unacknowledged)
+        } else {
+            String::new()
+        },
         if r.converged { "  converged" } else { "" }
     )
 }
@@ -216,10 +222,10 @@ pub fn run(args: DemoArgs) -> Result<()> {
             "doorslam demo: {} robots; team ATE {} m (centralized oracle {} m), team gain {}, {} of {} robots in the team frame; closures {} ({} true, {} false kept by PCM); {:.1} kB between robots; {:.0} s",
             summary.robots,
             summary.team_ate_m.map_or("—".into(), |v| format!("{v:.2}")),
+            summary.centralized_ate_m.map_or("—".into(), |v| format!("{v:.2}")),
             summary.team_gain.map_or("—".into(), |v| format!("{v:.2}")),
             summary.robots_in_team_frame,
             summary.robots,
-            summary.centralized_ate_m.map_or("—".into(), |v| format!("{v:.2}")),
             summary.closures.total,
             summary.closures.true_closures,
             summary.closures.false_accepted,

@@ -101,11 +101,16 @@ pub struct DpgoArgs {
     /// (to measure what the updates save).
     #[arg(long)]
     pub whole_graphs: bool,
-    /// Condensed method: the solver copies its graph to a standby robot, so the robot that
-    /// takes over when it leaves keeps its trajectory and closures (costs its graph once
-    /// more).
-    #[arg(long)]
+    /// Condensed method: the solver copies its trajectory to a standby robot, so the robot
+    /// that takes over when it leaves keeps its trajectory and every closure (the robots
+    /// above it send theirs with it again). On by default; accepted for scripts that
+    /// asked for it.
+    #[arg(long, conflicts_with = "no_standby_copy")]
     pub standby_copy: bool,
+    /// Condensed method: no standby copy (the solver's trajectory and the closures only it
+    /// sent are lost when it leaves; measures what the copy costs).
+    #[arg(long)]
+    pub no_standby_copy: bool,
     /// Condensed method: condense each robot's graph once, at its odometry (the scheme
     /// before relinearization, to measure what relinearizing buys).
     #[arg(long)]
@@ -254,7 +259,7 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         agent.solver.max_iterations = n;
     }
     agent.graph_updates = !args.whole_graphs;
-    agent.standby_copy = args.standby_copy;
+    agent.standby_copy = !args.no_standby_copy;
     if args.stream == Some(0) {
         bail!("--stream 0: at least one pose per round");
     }

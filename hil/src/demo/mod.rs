@@ -18,7 +18,8 @@
 //! 4. **Flight**: range events and the kill/restart are applied on time; every robot's
 //!    status is sampled for the progress lines and the bytes-over-time plot.
 //! 5. **Back at base**: after the flight every pair is put in range (the drones landed
-//!    together) until every robot's distributed back-end has converged (or `settle_s`).
+//!    together) until every robot's distributed back-end has converged on the solver's
+//!    latest solve, with nothing left unacknowledged on the radio (or `settle_s`).
 //! 6. **Report** ([`report`]): `report.md`, `summary.json`, plots as PNG and SVG; then the
 //!    run as ROS 2 messages, `run.mcap` (`doorslam_ros2::record`).
 //!
@@ -232,6 +233,50 @@ fn in_one_frame(robots: &[RobotSnapshot]) -> bool {
     robots
         .iter()
         .all(|r| !r.anchor.is_empty() && r.anchor == robots[0].anchor)
+}
+
+/// Nothing the team's estimate depends on is still on the radio: every team link has
+/// had each message it sent a present peer acknowledged, and every robot holds the team
+/// solve its parent last handed down to it (its `round` is the one the parent reports
+/// for it). Both back-ends say `converged` as soon as the solver has handed its estimates
+/// to its team link, so without this the run could end while the newest estimates wait
+/// for a resend (up to 16 × `retransmit_ms` apart on a lossy radio, longer than
+/// [`QUIET`]) and the robot below keep an older solve: a team estimate whose robots come
+/// from different solves, each right in shape, misplaced against each other.
+fn estimates_delivered(robots: &[RobotSnapshot]) -> bool {
+    robots.iter().all(|x| {
+        x.unacknowledged == 0
+            && x.rounds_handed_down.iter().all(|(name, round)| {
+                robots
+                    .iter()
+                    .find(|r| r.name.to_string() == *name)
+                    .is_some_and(|r| r.round == Some(*round))
+            })
+    })
+}
+
+/// What [`estimates_delivered`] still waits for, for the log.
+fn undelivered(robots: &[RobotSnapshot]) -> String {
+    let mut what = Vec::new();
+    for x in robots {
+        if x.unacknowledged > 0 {
+            what.push(format!("{}: {} unacknowledged", x.name, x.unacknowledged));
+        }
+        for (name, round) in &x.rounds_handed_down {
+            let held = robots
+                .iter()
+                .find(|r| r.name.to_string() == *name)
+                .and_then(|r| r.round);
+            if held != Some(*round) {
+                let held = held.map_or("none".to_string(), |h| h.to_string());
+                what.push(format!(
+                    "{name} holds round {held}, {} handed down {round}",
+                    x.name
+                ));
+            }
+        }
+    }
+    what.join(", ")
 }
 
 /// Runs the demo; `progress` is called a few times per second.
@@ -474,6 +519,7 @@ pub fn run(
     let t_settle = Instant::now();
     let mut stable_since: Option<(Instant, Vec<RobotSnapshot>)> = None;
     let mut met_at_base: std::collections::BTreeSet<(String, String)> = Default::default();
+    let mut waited_for_delivery = false;
     loop {
         for robot in &mut robots {
             robot.check_alive()?;
@@ -491,7 +537,8 @@ pub fn run(
         }
         progress(&snap);
         // Every pair has seen each other at base (their team links had a session to
-        // exchange what the flight left), and every back-end has converged.
+        // exchange what the flight left), every back-end has converged, and every robot
+        // holds the solve handed down to it (nothing left on the radio).
         for r in &snap.robots {
             for p in &r.present {
                 let me = r.name.to_string();
@@ -499,12 +546,33 @@ pub fn run(
             }
         }
         let all_met = met_at_base.len() >= n * (n - 1) / 2;
-        let all_converged = all_met && snap.robots.iter().all(|r| r.converged);
+        let converged = all_met && snap.robots.iter().all(|r| r.converged);
+        let delivered = estimates_delivered(&snap.robots);
+        if converged && !delivered && !waited_for_delivery {
+            // Said once per run: how often the back-ends' own word would have ended the
+            // settle too early.
+            waited_for_delivery = true;
+            let what = format!(
+                "every back-end converged, estimates still on the radio ({})",
+                undelivered(&snap.robots)
+            );
+            log.timeline.push(TimelineEvent {
+                t_s: ft,
+                event: format!("at base: {what}"),
+                robots: (0..n).map(|r| letter(r).to_string()).collect(),
+            });
+            snap.note = Some(format!("{ft:5.1} s  {what}"));
+            progress(&snap);
+        }
+        let all_converged = converged && delivered;
         // Converged, and nothing moving for a while: no closure, no back-end round, not a
         // byte on the radio (the meeting at base has exchanged what it had to).
         let same = |a: &[RobotSnapshot], b: &[RobotSnapshot]| {
             a.iter().zip(b).all(|(x, y)| {
-                x.closures == y.closures && x.rounds == y.rounds && x.bytes_sent == y.bytes_sent
+                x.closures == y.closures
+                    && x.rounds == y.rounds
+                    && x.round == y.round
+                    && x.bytes_sent == y.bytes_sent
             })
         };
         let quiet = if in_one_frame(&snap.robots) {
@@ -532,7 +600,10 @@ pub fn run(
     snap.phase = Phase::Stopping;
     progress(&snap);
     meter.sample(&groups(&robots));
-    for robot in &mut robots {
+    // From the highest robot down: the team's solver (the lowest) stops last, so no robot
+    // sees it leave and takes over solving (a robot without the solver's graph solves
+    // without the closures it held) while the team writes its final files.
+    for robot in robots.iter_mut().rev() {
         robot.stop(&mut meter)?;
     }
     log.cpu.robots_s = (0..n).map(|r| meter.robot_s(r)).collect();
@@ -572,9 +643,40 @@ mod tests {
             rejected: 0,
             rounds: 0,
             converged: true,
+            round: None,
+            rounds_handed_down: Default::default(),
+            unacknowledged: 0,
             anchor: anchor.into(),
             bytes_sent: 0,
         }
+    }
+
+    #[test]
+    fn the_team_is_settled_only_once_the_estimates_handed_down_arrived() {
+        // a solved round 7 and handed it to its team link for b; b still settles on 6.
+        let mut a = robot('a', "a");
+        a.round = Some(7);
+        a.rounds_handed_down = [("b".to_string(), 7)].into();
+        let mut b = robot('b', "a");
+        b.round = Some(6);
+        assert!(!estimates_delivered(&[a.clone(), b.clone()]));
+        assert_eq!(
+            undelivered(&[a.clone(), b.clone()]),
+            "b holds round 6, a handed down 7"
+        );
+        // A robot that holds no solve yet is not settled either.
+        b.round = None;
+        assert!(!estimates_delivered(&[a.clone(), b.clone()]));
+        b.round = Some(7);
+        assert!(estimates_delivered(&[a.clone(), b.clone()]));
+        // Something a team link sent a present peer and has no acknowledgement of.
+        b.unacknowledged = 2;
+        assert!(!estimates_delivered(&[a.clone(), b.clone()]));
+        assert_eq!(undelivered(&[a.clone(), b.clone()]), "b: 2 unacknowledged");
+        b.unacknowledged = 0;
+        // Estimates handed down for a robot the demo does not run: never delivered.
+        a.rounds_handed_down.insert("c".into(), 7);
+        assert!(!estimates_delivered(&[a, b]));
     }
 
     #[test]

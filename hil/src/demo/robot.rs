@@ -44,6 +44,14 @@ pub struct RobotSnapshot {
     /// Distributed back-end steps that solved something.
     pub rounds: u64,
     pub converged: bool,
+    /// The team solve (the solver's round) behind the back-end's estimate, and per robot
+    /// it hands estimates down to, the round it handed to the team link for that robot
+    /// (`backend.json` `team.round`, `team.rounds_handed_down`).
+    pub round: Option<u64>,
+    pub rounds_handed_down: std::collections::BTreeMap<String, u64>,
+    /// Messages the team link sent to a present peer and the peer has not acknowledged
+    /// yet (`status.json`, summed over the peers present): what is still on the radio.
+    pub unacknowledged: u64,
     /// The robot whose frame the distributed back-end puts this robot in (its own until
     /// it merges with a team; empty before the back-end reports).
     pub anchor: String,
@@ -227,7 +235,7 @@ impl Robot {
             })
             .unwrap_or_default();
         let rendezvous = meetings.values().sum();
-        let present = team
+        let present: Vec<String> = team
             .as_ref()
             .and_then(|t| t.get("present"))
             .and_then(|p| p.as_array())
@@ -237,6 +245,17 @@ impl Robot {
                     .collect()
             })
             .unwrap_or_default();
+        let unacknowledged = team
+            .as_ref()
+            .and_then(|t| t.get("peers"))
+            .and_then(|p| p.as_object())
+            .map_or(0, |peers| {
+                peers
+                    .iter()
+                    .filter(|(name, _)| present.contains(name))
+                    .map(|(_, p)| u(p.get("unacknowledged_messages")))
+                    .sum()
+            });
         RobotSnapshot {
             name: self.name(),
             state: self.state,
@@ -262,6 +281,19 @@ impl Robot {
                 .and_then(|b| b.pointer("/team/converged"))
                 .and_then(|c| c.as_bool())
                 .unwrap_or(false),
+            round: b
+                .and_then(|b| b.pointer("/team/round"))
+                .and_then(|r| r.as_u64()),
+            rounds_handed_down: b
+                .and_then(|b| b.pointer("/team/rounds_handed_down"))
+                .and_then(|r| r.as_object())
+                .map(|m| {
+                    m.iter()
+                        .filter_map(|(r, n)| Some((r.clone(), n.as_u64()?)))
+                        .collect()
+                })
+                .unwrap_or_default(),
+            unacknowledged,
             anchor: b
                 .and_then(|b| b.pointer("/team/anchor"))
                 .and_then(|a| a.as_str())

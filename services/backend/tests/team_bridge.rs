@@ -88,41 +88,48 @@ impl Robot {
     }
 }
 
+/// Gives `dst` the messages `src`'s bridge handed over, as the team link carries them.
+fn carry(src: &mut Robot, dst: &mut Robot, messages: Vec<(u8, Vec<u8>)>) -> usize {
+    let mut moved = 0;
+    for (peer, bytes) in messages {
+        assert_eq!(peer, dst.r);
+        let m = Message::decode(&bytes).unwrap();
+        let kind = m.kind().name();
+        let seq = src.sequences.entry(kind).or_insert(0);
+        let sent = Message::new(
+            Header {
+                sender: RobotId::new(&format!("robot{}", src.r)).unwrap(),
+                epoch: src.team_epoch,
+                sequence: *seq,
+            },
+            m.body,
+        );
+        *seq += 1;
+        dst.bridge
+            .on_envelope(
+                EnvelopeEvent::Message as u32,
+                u32::from(src.r),
+                0,
+                &sent.encode().unwrap(),
+            )
+            .unwrap();
+        moved += 1;
+    }
+    moved
+}
+
 /// One round: both step, and every message crosses as the team link would carry it.
 fn round(x: &mut Robot, y: &mut Robot) -> usize {
     let mut moved = 0;
-    for (from, to) in [(0, 1), (1, 0)] {
+    for from in [0, 1] {
         let (src, dst) = if from == 0 {
             (&mut *x, &mut *y)
         } else {
             (&mut *y, &mut *x)
         };
         src.bridge.step().unwrap();
-        for (peer, bytes) in src.bridge.outgoing().unwrap() {
-            assert_eq!(peer, dst.r);
-            let m = Message::decode(&bytes).unwrap();
-            let kind = m.kind().name();
-            let seq = src.sequences.entry(kind).or_insert(0);
-            let sent = Message::new(
-                Header {
-                    sender: RobotId::new(&format!("robot{}", src.r)).unwrap(),
-                    epoch: src.team_epoch,
-                    sequence: *seq,
-                },
-                m.body,
-            );
-            *seq += 1;
-            dst.bridge
-                .on_envelope(
-                    EnvelopeEvent::Message as u32,
-                    u32::from(src.r),
-                    0,
-                    &sent.encode().unwrap(),
-                )
-                .unwrap();
-            moved += 1;
-        }
-        let _ = to;
+        let out = src.bridge.outgoing().unwrap();
+        moved += carry(src, dst, out);
     }
     moved
 }
@@ -200,7 +207,13 @@ fn the_status_says_why_the_solver_stopped_and_a_cut_solve_is_not_converged() {
         assert_eq!(cut["converged"], false, "{cut}");
         assert_eq!(cut["stop_reason"], "max_iterations", "{cut}");
     }
-    for full in team_status(100) {
+    // Both on the same solve: the one a handed down to b.
+    let [a, b] = team_status(100);
+    assert!(a["round"].as_u64().is_some_and(|n| n > 0), "{a}");
+    assert_eq!(a["round"], b["round"], "{a}\n{b}");
+    assert_eq!(a["rounds_handed_down"]["b"], b["round"], "{a}");
+    assert_eq!(b["rounds_handed_down"], serde_json::json!({}), "{b}");
+    for full in [a, b] {
         assert_eq!(full["converged"], true, "{full}");
         assert!(
             full["stop_reason"]
@@ -281,6 +294,71 @@ fn a_restarted_team_link_makes_the_back_end_send_again() {
     let rounds = settle(&mut a, &mut b);
     assert!(rounds < 50);
     assert!(max_error(&b) < 1e-3, "b: {}", max_error(&b));
+}
+
+#[test]
+fn the_rounds_tell_estimates_still_on_the_radio_that_converged_cannot() {
+    let (mut a, mut b) = two_robots();
+    a.announce(&b);
+    b.announce(&a);
+    assert!(settle(&mut a, &mut b) < 50);
+    let before = a.bridge.agent().team_round().unwrap();
+    assert_eq!(b.bridge.agent().team_round(), Some(before));
+    assert_eq!(a.bridge.agent().rounds_handed_down(), [(1, before)].into());
+
+    // a's own loop closure, 0.3 m off the truth: a solves again, which moves b too (only
+    // a's graph changed, so b has nothing new of its own to wait for). The team link
+    // takes a's estimates for b and has not delivered them yet (a resend on a lossy
+    // radio can be seconds away).
+    let (i, j) = (key::symbol(0, 2).unwrap(), key::symbol(0, 10).unwrap());
+    let z = truth(0, 2).inverse() * truth(0, 10) * SE3::translation(0.3, 0.0, 0.0);
+    a.bridge.add_odometry(i, j, z, information()).unwrap();
+    let b_before: Vec<SE3> = b.bridge.estimate().map(|(_, p)| *p).collect();
+    let mut on_the_radio = Vec::new();
+    for _ in 0..50 {
+        a.bridge.step().unwrap();
+        on_the_radio.extend(a.bridge.outgoing().unwrap());
+        b.bridge.step().unwrap();
+        let out = b.bridge.outgoing().unwrap();
+        carry(&mut b, &mut a, out);
+        if a.bridge.agent().rounds_handed_down()[&1] > before && a.bridge.agent().converged() {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let handed = a.bridge.agent().rounds_handed_down()[&1];
+    assert!(
+        handed > before,
+        "a solved again and handed b's estimates over"
+    );
+    // Both back-ends' own word: settled, converged (a handed everything to the link,
+    // b holds a solve of its latest graph) ...
+    assert!(a.bridge.agent().converged() && b.bridge.agent().converged());
+    // ... while b's estimate is still the older solve's, and the rounds say so.
+    assert_eq!(b.bridge.agent().team_round(), Some(before));
+    let b_now: Vec<SE3> = b.bridge.estimate().map(|(_, p)| *p).collect();
+    assert_eq!(b_now, b_before);
+
+    // Delivered: b settles on the solve a handed down, and its estimate moves with it.
+    carry(&mut a, &mut b, on_the_radio);
+    assert!(settle(&mut a, &mut b) < 50);
+    let round = a.bridge.agent().team_round();
+    assert_eq!(b.bridge.agent().team_round(), round);
+    assert_eq!(
+        a.bridge.agent().rounds_handed_down()[&1],
+        round.unwrap(),
+        "a handed down its last solve"
+    );
+    let moved = b
+        .bridge
+        .estimate()
+        .zip(&b_before)
+        .map(|((_, p), q)| (p.translation.vector - q.translation.vector).norm())
+        .fold(0.0, f64::max);
+    assert!(
+        moved > 0.01,
+        "b's estimate moved by {moved} m with a's new solve"
+    );
 }
 
 #[test]

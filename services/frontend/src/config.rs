@@ -30,6 +30,9 @@ pub struct VoConfig {
     pub stereo_uniqueness: f64,
     /// Mean absolute intensity difference above which a block match is refused.
     pub stereo_max_mean_abs_diff: f64,
+    /// Refine block-matched disparities on the image gradients (see
+    /// `doorslam_vision::refine_disparity`); off keeps the parabola's sub-pixel value.
+    pub stereo_gradient_refine: bool,
     /// Standard deviation of a feature's pixel position (px), both axes.
     pub pixel_sigma_px: f64,
     /// Standard deviation of a sub-pixel disparity (px).
@@ -146,6 +149,7 @@ impl Default for VoConfig {
             min_disparity_px: 1.0,
             stereo_uniqueness: 0.9,
             stereo_max_mean_abs_diff: 25.0,
+            stereo_gradient_refine: true,
             pixel_sigma_px: 0.5,
             disparity_sigma_px: 0.5,
             posterior_variance: true,
@@ -420,6 +424,7 @@ impl VoConfig {
             min_disparity_px: self.min_disparity_px,
             stereo_uniqueness: self.stereo_uniqueness,
             stereo_max_mean_abs_diff: self.stereo_max_mean_abs_diff,
+            stereo_gradient_refine: self.stereo_gradient_refine,
         }
     }
 

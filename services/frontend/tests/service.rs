@@ -6,6 +6,7 @@
 use std::sync::OnceLock;
 
 use doorslam_dataset::StereoCalibration;
+use doorslam_frontend::keyframe::OdometryEdge;
 use doorslam_frontend::service::{
     fill_keyframe, ipc_edge, Calibration, CalibrationSource, Files, FrontendSection, FrontendState,
     Refusal, Restart, Resume, Step,
@@ -189,6 +190,7 @@ fn a_restarted_process_continues_ids_and_links_its_first_keyframe() {
         keyframe: 41,
         stamp_ns: 0,
         pose: before,
+        edge: None,
     };
     let mut s = state(Some(resume));
     let steps = feed(&mut s, 0, 0..10, &|_| false);
@@ -308,6 +310,7 @@ fn the_resume_file_round_trips_and_a_bad_one_is_named() {
         keyframe: 17,
         stamp_ns: 123,
         pose: SE3::translation(1.0, 2.0, 3.0),
+        edge: None,
     };
     files.write_resume(&r).unwrap();
     let back = files.read_resume().unwrap().unwrap();
@@ -319,6 +322,89 @@ fn the_resume_file_round_trips_and_a_bad_one_is_named() {
         err.contains("frontend.resume") && err.contains("stamp_ns"),
         "{err}"
     );
+}
+
+#[test]
+fn the_resume_state_keeps_the_edge_into_the_last_keyframe_for_a_restart() {
+    let resume = Resume {
+        keyframe: 41,
+        stamp_ns: 0,
+        pose: SE3::translation(5.0, -1.0, 2.0),
+        edge: None,
+    };
+    let mut s = state(Some(resume));
+    let mut keyframes = 0;
+    for k in 0..FRAMES {
+        let step = feed(&mut s, k as u64, k..k + 1, &|_| false).remove(0);
+        let Some(kf) = &step.keyframe else { continue };
+        keyframes += 1;
+        let r = s.resume().unwrap();
+        assert_eq!(r.keyframe, kf.id);
+        // The edge into it as published: the restart link (from 41) for the first
+        // keyframe of this process, its odometry for the next ones.
+        let edge = r.edge.expect("the edge into the last keyframe");
+        assert_eq!(edge.to, kf.id);
+        assert!(
+            step.edges.contains(&edge),
+            "{edge:?} not in {:?}",
+            step.edges
+        );
+        if keyframes == 1 {
+            assert_eq!(edge.from, 41);
+        } else {
+            assert!(edge.from > 41 && edge.from < kf.id, "{edge:?}");
+        }
+    }
+    assert!(keyframes >= 2, "the flight makes keyframes");
+}
+
+#[test]
+fn the_resume_file_keeps_the_edge_and_reads_files_without_one() {
+    let tmp = tempfile::tempdir().unwrap();
+    let files = Files::in_dir(&tmp.path().join("robot"));
+    let edge = OdometryEdge {
+        from: 16,
+        to: 17,
+        relative: SE3::translation(0.0, 0.0, 3.0),
+        information: doorslam_geometry::TangentMatrix::from_diagonal(&nalgebra::Vector6::new(
+            1e4, 2e4, 3e4, 1e2, 2e2, 3e2,
+        )),
+    };
+    let r = Resume {
+        keyframe: 17,
+        stamp_ns: 123,
+        pose: SE3::translation(1.0, 2.0, 3.0),
+        edge: Some(edge),
+    };
+    files.write_resume(&r).unwrap();
+    let back = files.read_resume().unwrap().unwrap().edge.unwrap();
+    assert_eq!((back.from, back.to), (16, 17));
+    assert!((back.relative.inverse() * edge.relative).log().norm() < 1e-12);
+    assert!((back.information - edge.information).norm() < 1e-9);
+    // A file of before the edge was kept: no edge, not an error.
+    let old = r#"{"keyframe":17,"stamp_ns":123,"pose":[1,2,3,0,0,0,1]}"#;
+    std::fs::write(&files.resume, old).unwrap();
+    assert_eq!(files.read_resume().unwrap().unwrap().edge, None);
+    // A bad edge is named.
+    for (edge, what) in [
+        (
+            r#"{"from":17,"relative":[0,0,3,0,0,0,1],"information":[]}"#,
+            "not from an earlier one",
+        ),
+        (
+            r#"{"from":16,"relative":[0,0,3,0,0,0,1],"information":[1,2,3]}"#,
+            "3 values",
+        ),
+    ] {
+        let text =
+            format!(r#"{{"keyframe":17,"stamp_ns":123,"pose":[1,2,3,0,0,0,1],"edge":{edge}}}"#);
+        std::fs::write(&files.resume, text).unwrap();
+        let err = files.read_resume().unwrap_err().to_string();
+        assert!(
+            err.contains("frontend.resume") && err.contains(what),
+            "{err}"
+        );
+    }
 }
 
 #[test]

@@ -12,6 +12,8 @@
 //!   closures and relayed messages out;
 //! - [`store`]: own keyframes' verification packets and descriptors kept on disk, so a
 //!   restarted robot still offers its keyframes from before the restart;
+//! - [`features`]: own keyframes' features, a bounded number in memory, the rest read back
+//!   from the store;
 //! - [`own_loops`]: the robot's own loop closures, through the same candidate chain and
 //!   PnP, to the back-end (PCM among them there);
 //! - [`chain_eval`]: the same chain offline against ground truth (`place eval --verify`).
@@ -20,6 +22,7 @@
 //! link) that do not depend on each other; only this glue does.
 
 pub mod chain_eval;
+pub mod features;
 pub mod own_loops;
 pub mod pieces;
 pub mod run;

@@ -15,6 +15,9 @@ use doorslam_ipc::wire::{Descriptor, Match};
 use doorslam_place_recognition::{CandidateChain, ChainConfig, ChainStats, MatchIndex};
 use serde::Serialize;
 
+use crate::features::OwnFeatures;
+use crate::store::OwnStore;
+
 /// Pairs waiting for a keyframe's features (the descriptor came first), at most.
 const MAX_WAITING: usize = 1024;
 
@@ -38,11 +41,13 @@ pub struct OwnLoops {
     stats: OwnLoopStats,
 }
 
-/// What a pair's verification needs: both keyframes' features, the camera, the settings.
+/// What a pair's verification needs: both keyframes' features (in memory or read back
+/// from the store), the camera, the settings.
 pub struct VerifyInputs<'a> {
     pub robot: u8,
     pub calib: &'a StereoCalibration,
-    pub features: &'a BTreeMap<u64, Vec<doorslam_frontend::Feature>>,
+    pub features: &'a mut OwnFeatures,
+    pub store: Option<&'a OwnStore>,
     pub config: &'a VerifyConfig,
 }
 
@@ -69,7 +74,7 @@ impl OwnLoops {
         &mut self,
         index: &MatchIndex,
         d: &Descriptor,
-        inputs: &VerifyInputs<'_>,
+        inputs: &mut VerifyInputs<'_>,
     ) -> Vec<doorslam_ipc::LoopClosure> {
         let confirmed = self.chain.push(index, std::slice::from_ref(d));
         self.waiting.extend(confirmed);
@@ -80,17 +85,30 @@ impl OwnLoops {
     }
 
     /// Verifies every waiting pair whose two keyframes have features now.
-    pub fn retry(&mut self, inputs: &VerifyInputs<'_>) -> Vec<doorslam_ipc::LoopClosure> {
+    pub fn retry(&mut self, inputs: &mut VerifyInputs<'_>) -> Vec<doorslam_ipc::LoopClosure> {
         let mut out = Vec::new();
         let mut still = VecDeque::new();
+        let sigma = inputs.config.disparity_sigma_px;
         for m in std::mem::take(&mut self.waiting) {
             let (q, c) = (key::index(m.query), key::index(m.candidate));
-            let (Some(local), Some(remote)) = (inputs.features.get(&q), inputs.features.get(&c))
-            else {
+            // Both there before either is read back from the store: a pair still waiting
+            // for one keyframe costs no read per retry.
+            if !(inputs.features.contains(q) && inputs.features.contains(c)) {
                 still.push_back(m);
                 continue;
+            }
+            let local = inputs.features.get(q, inputs.store, sigma);
+            let remote = inputs.features.get(c, inputs.store, sigma);
+            let (Some(local), Some(remote)) = (local, remote) else {
+                // Known but unreadable (a failed read, counted): the pair is dropped.
+                self.stats
+                    .rejected
+                    .entry("features_unreadable".into())
+                    .and_modify(|n| *n += 1)
+                    .or_insert(1);
+                continue;
             };
-            match verify(inputs.calib, local, inputs.calib, remote, inputs.config) {
+            match verify(inputs.calib, &local, inputs.calib, &remote, inputs.config) {
                 Ok(v) => {
                     self.stats.verified += 1;
                     // Verification gives the query's camera in the candidate's frame; the

@@ -24,6 +24,7 @@ use doorslam_team::protocol::{BackendExchange, BackendRefusal, DescriptorBatch, 
 use doorslam_team::{Pieces, Verifier};
 use serde::Serialize;
 
+use crate::features::{OwnFeatureStats, OwnFeatures, DEFAULT_FEATURES_IN_MEMORY};
 use crate::own_loops::{OwnLoopStats, OwnLoops, VerifyInputs};
 use crate::store::{OwnStore, StoreError};
 
@@ -48,6 +49,9 @@ pub struct MatchSettings {
     /// state message merges into the newest waiting one of its slot first; beyond, the
     /// new one is refused (`for_peer_refused`).
     pub for_peer_limit: usize,
+    /// Own keyframes' features held in memory at most; the least recently used leaves
+    /// for the keyframe store and is read back when needed ([`crate::features`]).
+    pub features_in_memory: usize,
 }
 
 impl Default for MatchSettings {
@@ -62,6 +66,7 @@ impl Default for MatchSettings {
             // Every back-end kind is a state kind, merged per slot: what waits for a peer
             // is a few messages per robot of the team; this is far above that.
             for_peer_limit: 1024,
+            features_in_memory: DEFAULT_FEATURES_IN_MEMORY,
         }
     }
 }
@@ -109,6 +114,8 @@ pub struct PiecesStats {
     pub store_errors: u64,
     /// The robot's own loops (counted apart from the inter-robot closures above).
     pub own_loops: OwnLoopStats,
+    /// Own keyframes' features in memory, on disk, moved between them.
+    pub own_features: OwnFeatureStats,
 }
 
 /// What the pieces share.
@@ -117,8 +124,9 @@ pub struct State {
     robot: u8,
     calib: StereoCalibration,
     settings: MatchSettings,
-    /// Own keyframes' features (strongest first, as the front-end sends them), by index.
-    features: BTreeMap<u64, Vec<doorslam_frontend::Feature>>,
+    /// Own keyframes' features (strongest first, as the front-end sends them), by index:
+    /// `features_in_memory` in memory, the rest in the store.
+    features: OwnFeatures,
     /// Own descriptors, by keyframe index, in the wire's int8 form (sent as they are), and
     /// the index matching received ones against them.
     descriptors: BTreeMap<u64, Descriptor>,
@@ -150,11 +158,12 @@ impl Shared {
             settings.temporal_exclusion,
         );
         let own_loops = settings.own_loops.clone().map(OwnLoops::new);
+        let features = OwnFeatures::new(settings.features_in_memory);
         Self(Arc::new(Mutex::new(State {
             robot,
             calib,
             settings,
-            features: BTreeMap::new(),
+            features,
             descriptors: BTreeMap::new(),
             index,
             chains: BTreeMap::new(),
@@ -171,29 +180,25 @@ impl Shared {
     /// Keeps own keyframes in the store at `path` from now on, after taking back what it
     /// holds (the keyframes of this robot's earlier runs, see [`crate::store`]).
     pub fn open_store(&self, path: &std::path::Path) -> Result<(), StoreError> {
-        let (store, bodies) = OwnStore::open(path)?;
-        let mut s = self.lock();
-        for body in bodies {
-            match body {
-                Body::VerificationFeatures(v) if key::robot(v.key) == Some(s.robot) => {
-                    let sigma = s.settings.verify.disparity_sigma_px;
-                    let (_, features) = from_packet(&v, sigma);
-                    s.features.insert(key::index(v.key), features);
-                    s.stats.restored_keyframes += 1;
-                }
-                Body::Descriptors(d) => {
-                    for q in d.descriptors {
-                        if key::robot(q.key) != Some(s.robot) || s.index.insert(q.clone()).is_err()
-                        {
-                            continue;
-                        }
-                        s.descriptors.insert(key::index(q.key), q);
-                        s.stats.restored_descriptors += 1;
-                    }
-                }
-                _ => {}
+        let mut guard = self.lock();
+        let s = &mut *guard;
+        let store = OwnStore::open(path, |body, offset| match body {
+            // Only where it is: read back when a keyframe is needed.
+            Body::VerificationFeatures(v) if key::robot(v.key) == Some(s.robot) => {
+                s.features.spilled(key::index(v.key), offset);
+                s.stats.restored_keyframes += 1;
             }
-        }
+            Body::Descriptors(d) => {
+                for q in d.descriptors {
+                    if key::robot(q.key) != Some(s.robot) || s.index.insert(q.clone()).is_err() {
+                        continue;
+                    }
+                    s.descriptors.insert(key::index(q.key), q);
+                    s.stats.restored_descriptors += 1;
+                }
+            }
+            _ => {}
+        })?;
         if s.stats.restored_keyframes > 0 || s.stats.restored_descriptors > 0 {
             tracing::info!(
                 path = %path.display(),
@@ -206,18 +211,26 @@ impl Shared {
         Ok(())
     }
 
-    /// Appends to the store, if any; a failure is logged and counted, never fatal.
-    fn keep(s: &mut State, body: impl FnOnce(&State) -> Option<Body>) {
-        if s.store.is_none() {
-            return;
-        }
-        let Some(body) = body(s) else { return };
-        if let Some(store) = s.store.as_mut() {
-            if let Err(e) = store.append(body) {
+    /// Appends to the store, if any, and returns the record's offset; a failure is logged
+    /// and counted, never fatal.
+    fn keep(s: &mut State, body: impl FnOnce(&State) -> Option<Body>) -> Option<u64> {
+        s.store.as_ref()?;
+        let body = body(s)?;
+        let store = s.store.as_mut()?;
+        match store.append(body) {
+            Ok(offset) => Some(offset),
+            Err(e) => {
                 tracing::error!("team: {e}");
                 s.stats.store_errors += 1;
+                None
             }
         }
+    }
+
+    /// Own keyframe `index`'s features, from memory or read back from the store.
+    fn features_of(s: &mut State, index: u64) -> Option<Arc<[doorslam_frontend::Feature]>> {
+        let sigma = s.settings.verify.disparity_sigma_px;
+        s.features.get(index, s.store.as_ref(), sigma)
     }
 
     fn lock(&self) -> MutexGuard<'_, State> {
@@ -248,12 +261,13 @@ impl Shared {
         if let Some(own) = &s.own_loops {
             stats.own_loops = own.stats();
         }
+        stats.own_features = s.features.stats();
         stats
     }
 
     /// Keyframes known (the highest index + 1).
     pub fn keyframes(&self) -> u64 {
-        self.lock().features.keys().next_back().map_or(0, |k| k + 1)
+        self.lock().features.last().map_or(0, |k| k + 1)
     }
 
     /// An own keyframe from the front-end: its features, for verification packets and
@@ -269,21 +283,24 @@ impl Shared {
         }
         let n = (kf.n_features as usize).min(kf.features.len());
         let sigma = s.settings.verify.disparity_sigma_px;
-        let features = kf.features[..n]
+        let features: Vec<_> = kf.features[..n]
             .iter()
             .map(|f| frontend_feature(f, &s.calib, sigma))
             .collect();
-        s.features.insert(kf.id, features);
-        s.stats.keyframes += 1;
-        Self::own_loops(&mut s, None);
         let id = kf.id;
-        Self::keep(&mut s, |s| {
+        // Into the store first, so that the keyframe can leave memory from now on.
+        let spilled = Self::keep(&mut s, |s| {
             let k = key::symbol(s.robot, id).ok()?;
-            let features = s.features.get(&id)?;
-            to_packet(k, &s.calib, features, s.settings.max_packet_features)
+            to_packet(k, &s.calib, &features, s.settings.max_packet_features)
                 .ok()
                 .map(Body::VerificationFeatures)
         });
+        if let Some(offset) = spilled {
+            s.features.spilled(id, offset);
+        }
+        s.features.insert(id, features);
+        s.stats.keyframes += 1;
+        Self::own_loops(&mut s, None);
         Ok(())
     }
 
@@ -348,20 +365,22 @@ impl Shared {
             index,
             own_loops,
             closures,
+            store,
             ..
         } = s;
         let Some(own) = own_loops.as_mut() else {
             return;
         };
-        let inputs = VerifyInputs {
+        let mut inputs = VerifyInputs {
             robot: *robot,
             calib,
             features,
+            store: store.as_ref(),
             config: &settings.verify,
         };
         let found = match descriptor {
-            Some(d) => own.on_descriptor(index, d, &inputs),
-            None => own.retry(&inputs),
+            Some(d) => own.on_descriptor(index, d, &mut inputs),
+            None => own.retry(&mut inputs),
         };
         closures.extend(found);
     }
@@ -511,12 +530,12 @@ impl DescriptorSource for Places {
     }
 
     fn verification_features(&mut self, k: u64) -> Option<VerificationFeatures> {
-        let s = self.0.lock();
+        let mut s = self.0.lock();
         if key::robot(k) != Some(s.robot) {
             return None;
         }
-        let features = s.features.get(&key::index(k))?;
-        match to_packet(k, &s.calib, features, s.settings.max_packet_features) {
+        let features = Shared::features_of(&mut s, key::index(k))?;
+        match to_packet(k, &s.calib, &features, s.settings.max_packet_features) {
             Ok(p) => Some(p),
             Err(e) => {
                 tracing::error!("verification packet of {}: {e}", key::label(k));
@@ -555,7 +574,7 @@ impl Verifier for PnpVerifier {
     ) -> Option<LoopClosure> {
         let mut s = self.0.lock();
         let calib = s.calib;
-        let Some(own) = s.features.get(&key::index(m.query)) else {
+        let Some(own) = Shared::features_of(&mut s, key::index(m.query)) else {
             *s.stats
                 .rejected
                 .entry("unknown_keyframe".into())
@@ -563,7 +582,7 @@ impl Verifier for PnpVerifier {
             return None;
         };
         let (remote_calib, remote) = from_packet(packet, s.settings.verify.disparity_sigma_px);
-        let verified = match verify(&calib, own, &remote_calib, &remote, &s.settings.verify) {
+        let verified = match verify(&calib, &own, &remote_calib, &remote, &s.settings.verify) {
             Ok(v) => v,
             Err(r) => {
                 tracing::debug!(peer = %peer, pair = %format!("{} - {}", key::label(m.query), key::label(m.candidate)), "verification: {r}");
@@ -1023,6 +1042,88 @@ mod tests {
                 .unwrap();
         }
         assert!(off.take_for_backend().1.is_empty());
+    }
+
+    /// `features_in_memory` 4 over 28 keyframes, with the store: memory never holds more
+    /// than 4, yet the own loops onto keyframes 2..=4 (long out of memory) close, a
+    /// peer's packet is verified against an old keyframe, and its packet goes out, all
+    /// read back from the store. Without a store the old keyframes are forgotten
+    /// (counted) and their pairs do not verify.
+    #[test]
+    fn keyframes_beyond_features_in_memory_are_read_back_from_the_store() {
+        let dir = tempfile::tempdir().unwrap();
+        let settings = MatchSettings {
+            features_in_memory: 4,
+            ..Default::default()
+        };
+        let pose = |id: u64| {
+            let at = if (25..=27).contains(&id) { id - 23 } else { id };
+            SE3::translation(2.0 * at as f64, 0.0, 0.0)
+        };
+        let fly = |s: &Shared| {
+            for id in 0..28u64 {
+                s.add_keyframe(&keyframe(1, id, &pose(id))).unwrap();
+                let v = if (25..=27).contains(&id) {
+                    let mut v = unit((id - 23) as usize);
+                    v[100] = 0.05;
+                    v
+                } else {
+                    unit(id as usize)
+                };
+                s.add_descriptor(&descriptor(1, id, &v)).unwrap();
+                assert!(s.stats().own_features.in_memory <= 4);
+            }
+        };
+        let s = Shared::new(1, calib(), settings.clone());
+        s.open_store(&dir.path().join("b").join("team.own"))
+            .unwrap();
+        fly(&s);
+        let f = s.stats().own_features;
+        assert_eq!((f.on_disk, f.forgotten, f.load_errors), (28, 0, 0), "{f:?}");
+        assert!(f.evicted >= 24 && f.loaded >= 3, "{f:?}");
+        assert_eq!(s.keyframes(), 28);
+        let (_, closures) = s.take_for_backend();
+        let pairs: Vec<(u64, u64)> = closures
+            .iter()
+            .map(|c| (c.keyframe_a, c.keyframe_b))
+            .collect();
+        assert_eq!(pairs, vec![(25, 2), (26, 3), (27, 4)]);
+        // A peer (robot a) sends its packet of the place of b's keyframe 1, long out of
+        // b's memory: verified against the features read back.
+        let sa = Shared::new(0, calib(), MatchSettings::default());
+        sa.add_keyframe(&keyframe(0, 7, &pose(1))).unwrap();
+        let packet = Places(sa)
+            .verification_features(key::symbol(0, 7).unwrap())
+            .unwrap();
+        let m = Match {
+            query: key::symbol(1, 1).unwrap(),
+            candidate: key::symbol(0, 7).unwrap(),
+            distance: 0.1,
+        };
+        let peer = RobotId::new("a").unwrap();
+        let loaded = s.stats().own_features.loaded;
+        let closure = PnpVerifier(s.clone()).verify(&peer, &m, &packet).unwrap();
+        assert!(closure.relative.se3().translation.vector.norm() < 0.01);
+        assert_eq!(s.stats().own_features.loaded, loaded + 1);
+        // b's packet of an old keyframe: the one it would have sent when it was new.
+        let old = Places(s.clone())
+            .verification_features(key::symbol(1, 0).unwrap())
+            .unwrap();
+        let fresh = Shared::new(1, calib(), MatchSettings::default());
+        fresh.add_keyframe(&keyframe(1, 0, &pose(0))).unwrap();
+        let want = Places(fresh)
+            .verification_features(key::symbol(1, 0).unwrap())
+            .unwrap();
+        assert_eq!(old, want);
+        assert!(s.stats().own_features.in_memory <= 4);
+
+        // No store: what leaves memory is forgotten, and the loops onto it never close.
+        let s = Shared::new(1, calib(), settings);
+        fly(&s);
+        let f = s.stats().own_features;
+        assert_eq!((f.in_memory, f.on_disk, f.forgotten), (4, 0, 24), "{f:?}");
+        assert!(s.take_for_backend().1.is_empty());
+        assert!(PnpVerifier(s.clone()).verify(&peer, &m, &packet).is_none());
     }
 
     #[test]

@@ -201,6 +201,13 @@ pub struct RendezvousSection {
     /// The back-end's messages waiting for one absent peer at most (see [`MatchSettings`]).
     #[serde(default = "default_for_peer_limit")]
     pub for_peer_limit: usize,
+    /// Own keyframes' features held in memory at most (see [`MatchSettings`]).
+    #[serde(default = "default_features_in_memory")]
+    pub features_in_memory: usize,
+}
+
+fn default_features_in_memory() -> usize {
+    MatchSettings::default().features_in_memory
 }
 
 fn default_for_peer_limit() -> usize {
@@ -217,6 +224,7 @@ impl Default for RendezvousSection {
             max_packet_features: default_packet(),
             verify: doorslam_frontend::VerifyConfig::default(),
             for_peer_limit: default_for_peer_limit(),
+            features_in_memory: default_features_in_memory(),
         }
     }
 }
@@ -239,6 +247,12 @@ impl RendezvousSection {
                 self.for_peer_limit
             ));
         }
+        if !(1..=1 << 20).contains(&self.features_in_memory) {
+            return Err(format!(
+                "rendezvous.features_in_memory = {}: from 1 to 1048576",
+                self.features_in_memory
+            ));
+        }
         Ok(())
     }
 
@@ -257,6 +271,7 @@ impl RendezvousSection {
             max_packet_features: self.max_packet_features,
             verify: self.verify.clone(),
             for_peer_limit: self.for_peer_limit,
+            features_in_memory: self.features_in_memory,
         }
     }
 }

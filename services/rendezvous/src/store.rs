@@ -15,7 +15,8 @@
 //! the file is left as it is.
 
 use std::fs::{File, OpenOptions};
-use std::io::{Read, Write};
+use std::io::{BufReader, Read, Write};
+use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 
 use doorslam_ipc::wire::{Body, Header, Message, RobotId, MAX_MESSAGE_BYTES};
@@ -37,7 +38,9 @@ pub enum StoreError {
     },
 }
 
-/// The append-only file of own keyframes.
+/// The append-only file of own keyframes. Records are also read back one at a time by
+/// their offset ([`OwnStore::read_at`]): the features of keyframes that left memory
+/// (`[rendezvous] features_in_memory`) are read from here when they are needed again.
 #[derive(Debug)]
 pub struct OwnStore {
     path: PathBuf,
@@ -45,8 +48,10 @@ pub struct OwnStore {
 }
 
 impl OwnStore {
-    /// Opens (or creates) the store at `path` and returns what it holds, oldest first.
-    pub fn open(path: &Path) -> Result<(Self, Vec<Body>), StoreError> {
+    /// Opens (or creates) the store at `path`, handing `visit` what it holds, oldest
+    /// first, with each record's offset (for [`Self::read_at`]). Records are read one at a
+    /// time, so opening a long flight's store never holds the whole file in memory.
+    pub fn open(path: &Path, mut visit: impl FnMut(Body, u64)) -> Result<Self, StoreError> {
         let io = |source| StoreError::Io {
             path: path.to_path_buf(),
             source,
@@ -54,71 +59,76 @@ impl OwnStore {
         if let Some(dir) = path.parent() {
             std::fs::create_dir_all(dir).map_err(io)?;
         }
-        let mut bytes = Vec::new();
-        match File::open(path) {
-            Ok(mut f) => {
-                f.read_to_end(&mut bytes).map_err(io)?;
-            }
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-            Err(e) => return Err(io(e)),
-        }
-        let mut bodies = Vec::new();
-        let mut at = 0usize;
-        while at < bytes.len() {
+        let file = OpenOptions::new()
+            .create(true)
+            .append(true)
+            .read(true)
+            .open(path)
+            .map_err(io)?;
+        let total = file.metadata().map_err(io)?.len();
+        let mut reader = BufReader::new(&file);
+        let mut at = 0u64;
+        let mut record = Vec::new();
+        loop {
             let corrupt = |reason: String| StoreError::Corrupt {
                 path: path.to_path_buf(),
-                offset: at as u64,
+                offset: at,
                 reason,
             };
-            let Some(len) = bytes.get(at..at + 4) else {
-                break; // a torn length
-            };
-            let len = u32::from_le_bytes([len[0], len[1], len[2], len[3]]) as usize;
+            if at + 4 > total {
+                break; // the end, or a torn length
+            }
+            let mut len = [0u8; 4];
+            reader.read_exact(&mut len).map_err(io)?;
+            let len = u32::from_le_bytes(len) as usize;
             if len == 0 || len > MAX_MESSAGE_BYTES {
                 return Err(corrupt(format!(
                     "length {len} (1..={MAX_MESSAGE_BYTES} expected)"
                 )));
             }
-            let Some(record) = bytes.get(at + 4..at + 4 + len) else {
+            if at + 4 + len as u64 > total {
                 break; // a torn record
-            };
-            let message = Message::decode(record).map_err(|e| corrupt(e.to_string()))?;
-            match message.body {
-                b @ (Body::VerificationFeatures(_) | Body::Descriptors(_)) => bodies.push(b),
-                other => {
-                    return Err(corrupt(format!(
-                        "a {} message: only verification packets and descriptors are kept here",
-                        other.kind().name()
-                    )))
-                }
             }
-            at += 4 + len;
+            record.resize(len, 0);
+            reader.read_exact(&mut record).map_err(io)?;
+            visit(Self::body(&record).map_err(corrupt)?, at);
+            at += 4 + len as u64;
         }
-        let file = OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)
-            .map_err(io)?;
-        if at < bytes.len() {
+        drop(reader);
+        if at < total {
             tracing::warn!(
                 path = %path.display(),
                 kept = at,
-                cut = bytes.len() - at,
+                cut = total - at,
                 "team: own keyframe store ends in a torn record (the process died mid-write): cut off"
             );
-            file.set_len(at as u64).map_err(io)?;
+            file.set_len(at).map_err(io)?;
         }
-        Ok((
-            Self {
-                path: path.to_path_buf(),
-                file,
-            },
-            bodies,
-        ))
+        Ok(Self {
+            path: path.to_path_buf(),
+            file,
+        })
     }
 
-    /// Appends one body (a verification packet or a one-keyframe descriptor batch).
-    pub fn append(&mut self, body: Body) -> Result<(), StoreError> {
+    /// A record's body: only verification packets and descriptors are kept here.
+    fn body(record: &[u8]) -> Result<Body, String> {
+        let message = Message::decode(record).map_err(|e| e.to_string())?;
+        match message.body {
+            b @ (Body::VerificationFeatures(_) | Body::Descriptors(_)) => Ok(b),
+            other => Err(format!(
+                "a {} message: only verification packets and descriptors are kept here",
+                other.kind().name()
+            )),
+        }
+    }
+
+    /// Appends one body (a verification packet or a one-keyframe descriptor batch) and
+    /// returns the offset of its record.
+    pub fn append(&mut self, body: Body) -> Result<u64, StoreError> {
+        let io = |source| StoreError::Io {
+            path: self.path.clone(),
+            source,
+        };
         let header = Header {
             sender: RobotId::new("own").expect("a valid robot id"),
             epoch: 0,
@@ -134,13 +144,39 @@ impl OwnStore {
         let mut record = Vec::with_capacity(4 + bytes.len());
         record.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
         record.extend_from_slice(&bytes);
+        // The file's length, not a count kept here: after a failed (partial) write the
+        // next record still gets its true offset.
+        let offset = self.file.metadata().map_err(io)?.len();
         // One write per record: a crash leaves at most this record torn.
+        self.file.write_all(&record).map_err(io)?;
+        Ok(offset)
+    }
+
+    /// The body of the record at `offset` (as [`Self::append`] returned it or
+    /// [`Self::open`] handed it).
+    pub fn read_at(&self, offset: u64) -> Result<Body, StoreError> {
+        let io = |source| StoreError::Io {
+            path: self.path.clone(),
+            source,
+        };
+        let corrupt = |reason: String| StoreError::Corrupt {
+            path: self.path.clone(),
+            offset,
+            reason,
+        };
+        let mut len = [0u8; 4];
+        self.file.read_exact_at(&mut len, offset).map_err(io)?;
+        let len = u32::from_le_bytes(len) as usize;
+        if len == 0 || len > MAX_MESSAGE_BYTES {
+            return Err(corrupt(format!(
+                "length {len} (1..={MAX_MESSAGE_BYTES} expected)"
+            )));
+        }
+        let mut record = vec![0; len];
         self.file
-            .write_all(&record)
-            .map_err(|source| StoreError::Io {
-                path: self.path.clone(),
-                source,
-            })
+            .read_exact_at(&mut record, offset + 4)
+            .map_err(io)?;
+        Self::body(&record).map_err(corrupt)
     }
 
     pub fn path(&self) -> &Path {

@@ -38,6 +38,10 @@ pub struct FeatureConfig {
     pub stereo_uniqueness: f64,
     /// Mean absolute intensity difference above which a block match is refused.
     pub stereo_max_mean_abs_diff: f64,
+    /// Refine each block match's disparity by Gauss-Newton on the image gradients
+    /// ([`crate::refine_disparity`]) instead of keeping the parabola's: the parabola
+    /// through three SAD costs pulls sub-pixel disparities towards whole pixels.
+    pub stereo_gradient_refine: bool,
 }
 
 impl Default for FeatureConfig {
@@ -53,6 +57,7 @@ impl Default for FeatureConfig {
             min_disparity_px: 1.0,
             stereo_uniqueness: 0.9,
             stereo_max_mean_abs_diff: 25.0,
+            stereo_gradient_refine: true,
         }
     }
 }

@@ -10,7 +10,7 @@ use opencv::prelude::*;
 use crate::config::{Detector, FeatureConfig};
 use crate::error::{cv, VisionError};
 use crate::image::Gray;
-use crate::stereo::match_along_row;
+use crate::stereo::{match_along_row, refine_disparity};
 
 /// One left-image feature of a frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -400,9 +400,19 @@ fn stereo_features(
     for (row, kp) in keypoints.iter().enumerate() {
         let pixel = [kp.pt().x, kp.pt().y];
         let disparity = match disparities {
+            // Matched at the integer corner; refined again where the corner is now.
             Some(d) => usize::try_from(kp.class_id())
                 .ok()
-                .and_then(|i| d.get(i).copied()),
+                .and_then(|i| d.get(i).copied())
+                .map(|d| {
+                    if config.stereo_gradient_refine {
+                        refine_disparity(left, right, pixel, d as f64, config.stereo_window_radius)
+                            .map_or(d, |refined| refined as f32)
+                    } else {
+                        d
+                    }
+                })
+                .filter(|&d| d as f64 >= config.min_disparity_px),
             None => match_along_row(left, right, pixel, config),
         };
         if let Some(disparity) = disparity {

@@ -29,7 +29,7 @@ pub use error::VisionError;
 pub use image::{load_gray, Gray};
 pub use klt::{KltConfig, KltFailure, KltScratch, Pyramid, Tracked};
 pub use pnp::pnp_ransac;
-pub use stereo::{match_along_row, triangulate, triangulation_jacobian};
+pub use stereo::{match_along_row, refine_disparity, triangulate, triangulation_jacobian};
 
 /// Re-exported so callers use the exact OpenCV binding this crate was built against.
 pub use opencv;

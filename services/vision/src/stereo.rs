@@ -73,8 +73,118 @@ pub fn match_along_row(
     };
     // The block was matched at round(u); disparity varies smoothly over the block, so the
     // sub-pixel keypoint a fraction of a pixel away has the same one.
-    let disparity = d as f64 + offset;
+    let mut disparity = d as f64 + offset;
+    if config.stereo_gradient_refine {
+        disparity = refine_disparity(left, right, pixel, disparity, r).unwrap_or(disparity);
+    }
     (disparity >= config.min_disparity_px).then_some(disparity as f32)
+}
+
+/// Largest move (px) of the gradient refinement away from the block match it starts from:
+/// beyond it the iteration has left the block match's basin (repeated texture, an edge
+/// along the row), and the block match is kept.
+const MAX_REFINE_MOVE_PX: f64 = 1.0;
+
+/// The disparity `d` of the left pixel `pixel` (sub-pixel) refined from `d0` by
+/// Gauss-Newton on `Σ (R(x − d, y) − L(x, y) − β)²` over the `(2r+1)²` window around it,
+/// `β` absorbing a brightness offset between the two cameras. Both images are sampled
+/// bilinearly at the window's sub-pixel positions, so the estimate is continuous in the
+/// shift; the parabola through three SAD costs ([`match_along_row`]'s own sub-pixel step)
+/// is biased towards whole pixels ("pixel locking"), an error every point of a frame
+/// shares in the same direction for the same fractional disparity. `None` when the window
+/// leaves an image, the rows carry no horizontal gradient, or the iteration moves more
+/// than a pixel from `d0` (then `d0` stands).
+pub fn refine_disparity(
+    left: &Gray<'_>,
+    right: &Gray<'_>,
+    pixel: [f32; 2],
+    d0: f64,
+    r: usize,
+) -> Option<f64> {
+    let (x0, y0) = (pixel[0] as f64, pixel[1] as f64);
+    let (w, h) = (left.width as f64, left.height as f64);
+    let rf = r as f64;
+    // The window, its right-image copy up to a pixel either way and the gradient's ±1 px
+    // (d0 ≥ 0.5 from the block match, so the copy never reaches past x0 + r + 2.5).
+    if y0 - rf < 0.0
+        || y0 + rf + 1.0 >= h
+        || x0 + rf + 3.0 >= w
+        || x0 - rf - d0 - MAX_REFINE_MOVE_PX - 2.0 < 0.0
+    {
+        return None;
+    }
+    let n = 2 * r + 1;
+    if n > MAX_REFINE_WINDOW {
+        return None;
+    }
+    // Every sample of a window shares one fractional offset, so each image row is
+    // interpolated once per window row: the window's n samples plus one on each side for
+    // the central-difference gradient.
+    let mut template = [0.0f64; MAX_REFINE_WINDOW * MAX_REFINE_WINDOW];
+    let mut samples = [0.0f64; MAX_REFINE_WINDOW + 2];
+    let (ly, fy) = split(y0 - rf);
+    let (lx, fx) = split(x0 - rf);
+    for j in 0..n {
+        interpolate_row(left, lx, ly + j, fx, fy, &mut template[j * n..(j + 1) * n]);
+    }
+    let (mut d, mut beta) = (d0, 0.0);
+    for _ in 0..8 {
+        // Normal equations of (Δd, Δβ), residual e = R(x − d, y) − L(x, y) − β, Jacobian
+        // (−∂R/∂x, −1).
+        let (rx, rfx) = split(x0 - rf - d - 1.0);
+        let (mut h_dd, mut h_db, mut b_d, mut b_b) = (0.0, 0.0, 0.0, 0.0);
+        for j in 0..n {
+            interpolate_row(right, rx, ly + j, rfx, fy, &mut samples[..n + 2]);
+            for i in 0..n {
+                let gx = 0.5 * (samples[i + 2] - samples[i]);
+                let e = samples[i + 1] - template[j * n + i] - beta;
+                h_dd += gx * gx;
+                h_db += gx;
+                b_d += gx * e;
+                b_b += e;
+            }
+        }
+        let h_bb = (n * n) as f64;
+        // J = (−gx, −1): JᵀJ = [[Σgx², Σgx], [Σgx, N]], −Jᵀe = (Σgx·e, Σe).
+        let det = h_dd * h_bb - h_db * h_db;
+        if det <= 1e-6 * h_bb * h_bb {
+            return None;
+        }
+        let step_d = (h_bb * b_d - h_db * b_b) / det;
+        let step_b = (h_dd * b_b - h_db * b_d) / det;
+        d += step_d;
+        beta += step_b;
+        if (d - d0).abs() > MAX_REFINE_MOVE_PX {
+            return None;
+        }
+        if step_d.abs() < 1e-2 {
+            break;
+        }
+    }
+    Some(d)
+}
+
+/// Widest refinement window (`2r + 1`, r ≤ 7 as the block matcher's 16-bit costs).
+const MAX_REFINE_WINDOW: usize = 15;
+
+/// Whole and fractional part of a non-negative coordinate.
+fn split(x: f64) -> (usize, f64) {
+    let whole = x.floor();
+    (whole as usize, x - whole)
+}
+
+/// `out[k]` = the image bilinearly interpolated at `(x + k + fx, y + fy)`.
+fn interpolate_row(image: &Gray<'_>, x: usize, y: usize, fx: f64, fy: f64, out: &mut [f64]) {
+    let (top, bottom) = (image.row(y), image.row(y + 1));
+    let (w00, w01) = ((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy));
+    let (w10, w11) = ((1.0 - fx) * fy, fx * fy);
+    for (k, o) in out.iter_mut().enumerate() {
+        let c = x + k;
+        *o = w00 * top[c] as f64
+            + w01 * top[c + 1] as f64
+            + w10 * bottom[c] as f64
+            + w11 * bottom[c + 1] as f64;
+    }
 }
 
 /// Sums of absolute differences between the left block around `(u, v)` and the right
@@ -152,6 +262,49 @@ mod tests {
             }
         }
         (left, right)
+    }
+
+    /// The parabola through three SAD costs locks towards whole pixels; the gradient
+    /// refinement does not, and a brightness offset between the cameras does not move it.
+    #[test]
+    fn gradient_refinement_removes_the_parabolas_pixel_locking() {
+        let (w, h) = (200, 60);
+        let parabola = FeatureConfig {
+            stereo_gradient_refine: false,
+            ..FeatureConfig::default()
+        };
+        let gradient = FeatureConfig::default();
+        let (mut worst_parabola, mut worst_gradient) = (0.0f64, 0.0f64);
+        for truth in [8.1, 8.25, 8.4, 8.6, 8.75, 8.9, 21.3, 21.7] {
+            let (l, mut r) = pair(w, h, truth);
+            for p in &mut r {
+                *p = p.saturating_add(6);
+            }
+            let (left, right) = (Gray::new(w, h, &l).unwrap(), Gray::new(w, h, &r).unwrap());
+            for x in [60.0f32, 100.3, 140.7] {
+                let a = match_along_row(&left, &right, [x, 30.0], &parabola).unwrap() as f64;
+                let b = match_along_row(&left, &right, [x, 30.0], &gradient).unwrap() as f64;
+                worst_parabola = worst_parabola.max((a - truth).abs());
+                worst_gradient = worst_gradient.max((b - truth).abs());
+            }
+        }
+        assert!(
+            worst_gradient < 0.05 && worst_gradient < 0.5 * worst_parabola,
+            "worst error: gradient {worst_gradient:.3} px, parabola {worst_parabola:.3} px"
+        );
+    }
+
+    #[test]
+    fn gradient_refinement_refuses_a_flat_window_and_the_border() {
+        let (w, h) = (80, 40);
+        let flat = vec![90u8; w * h];
+        let image = Gray::new(w, h, &flat).unwrap();
+        assert_eq!(refine_disparity(&image, &image, [40.0, 20.0], 5.0, 3), None);
+        let (l, r) = pair(w, h, 5.0);
+        let (left, right) = (Gray::new(w, h, &l).unwrap(), Gray::new(w, h, &r).unwrap());
+        assert_eq!(refine_disparity(&left, &right, [6.0, 20.0], 5.0, 3), None);
+        assert_eq!(refine_disparity(&left, &right, [40.0, 38.5], 5.0, 3), None);
+        assert!(refine_disparity(&left, &right, [40.0, 20.0], 5.0, 3).is_some());
     }
 
     #[test]

@@ -200,7 +200,13 @@ fn factor_of(t_bar: &SE3, m: &SegmentModel) -> Option<(SE3, TangentMatrix)> {
 /// interior must be at its optimum given the separators ([`solve_interior`]): per chain
 /// segment between consecutive separators, the between-factor matching the segment's
 /// Schur complement there ([`factor_of`]); a segment of one step keeps its edges as they are
-/// (exact); intra-robot loops as they are; inter-robot closures once, from the lower robot.
+/// (exact); intra-robot loops as they are; inter-robot closures once, from the lower robot,
+/// and also those with a robot below `resend_below` (the team's solver, so such a robot is
+/// not in the team: when the solver left, its graph lives on only as a standby copy without
+/// the closures the robots above it hold, and they send them again, see
+/// [`trajectory_copy`]). A segment of at most `raw_steps` steps (at least one) is sent as
+/// its odometry edges, exact (its inner poses become poses of the separator graph): cheaper
+/// on the wire than one factor with its own information when the odometry shares one.
 ///
 /// At the odometry's zero residual this is the classic compounding (`z` the composed
 /// odometry, `Ω` the compounded information). At any other estimate it is the segment's
@@ -214,6 +220,8 @@ pub(crate) fn condense(
     poses: &[SE3],
     edges: &[OwnEdge],
     closures: &[OwnClosure],
+    resend_below: u8,
+    raw_steps: usize,
 ) -> Result<Vec<Condensed>, DpgoError> {
     let seps = separators(keys.len(), edges, closures);
     let chain = chain_edges(edges, keys.len());
@@ -236,18 +244,20 @@ pub(crate) fn condense(
         if t == s || !seps.contains(&t) {
             continue;
         }
-        if t == s + 1 {
-            for e in &chain[s] {
-                let (z, information) = oriented(e, s);
-                out.push(Condensed {
-                    edge: CondensedEdge {
-                        a: keys[s],
-                        b: keys[t],
-                        z,
-                        information,
-                    },
-                    model: None,
-                });
+        if t - s <= raw_steps.max(1) {
+            for p in s..t {
+                for e in &chain[p] {
+                    let (z, information) = oriented(e, p);
+                    out.push(Condensed {
+                        edge: CondensedEdge {
+                            a: keys[p],
+                            b: keys[p + 1],
+                            z,
+                            information,
+                        },
+                        model: None,
+                    });
+                }
             }
             continue;
         }
@@ -277,13 +287,83 @@ pub(crate) fn condense(
     for e in edges.iter().filter(|e| e.i.abs_diff(e.j) != 1) {
         out.push(exact(keys[e.i], keys[e.j], e.z, e.information));
     }
-    // Closures, once: from the lower robot.
+    // Closures, once: from the lower robot (or from this one when the lower robot is out
+    // of the team and its graph a standby copy without them).
     for c in closures {
-        if key::robot(c.other).is_some_and(|o| robot < o) {
+        if key::robot(c.other).is_some_and(|o| robot < o || o < resend_below) {
             out.push(exact(keys[c.own], c.other, c.z, c.information));
         }
     }
     Ok(out)
+}
+
+/// The edges of a team's separator graph, every closure once and seen from its lower
+/// robot. A closure lives in the graph of the lower of its two robots; the higher one sends
+/// it too only while the lower robot is out of its team (`condense`'s `resend_below`), when
+/// the solver holds the lower robot's graph as a standby copy without its closures to
+/// higher robots ([`trajectory_copy`]). Such a closure is kept (reversed, exactly: the
+/// cost is the same) when the lower robot's graph is held and does not carry the same key
+/// pair (a full graph held from elsewhere does), and dropped when the lower robot's graph
+/// is not held at all or does not hold its pose (it would hang on a pose nothing else
+/// constrains; a copy leaves out the ends of closures PCM rejected, `team::own_copy`).
+pub(crate) fn team_edges(graphs: &BTreeMap<u8, &[CondensedEdge]>) -> Vec<CondensedEdge> {
+    let pair = |e: &CondensedEdge| (e.a.min(e.b), e.a.max(e.b));
+    // Per graph: the closures it carries with higher robots, and its own poses.
+    type Held = (BTreeSet<(u64, u64)>, BTreeSet<u64>);
+    let held: BTreeMap<u8, Held> = graphs
+        .iter()
+        .map(|(o, edges)| {
+            let pairs = edges
+                .iter()
+                .filter(|e| key::robot(e.b).is_some_and(|b| b > *o))
+                .map(pair)
+                .collect();
+            let own = edges
+                .iter()
+                .flat_map(|e| [e.a, e.b])
+                .filter(|k| key::robot(*k) == Some(*o))
+                .collect();
+            (*o, (pairs, own))
+        })
+        .collect();
+    let mut out = Vec::new();
+    for (o, edges) in graphs {
+        for e in edges.iter() {
+            match key::robot(e.b) {
+                Some(lower) if lower < *o => {
+                    // Kept on a pose the lower robot's graph holds (a copy condensed past
+                    // the ends of closures PCM rejected holds no such pose).
+                    let keep = held.get(&lower).is_some_and(|(pairs, own)| {
+                        !pairs.contains(&pair(e)) && own.contains(&e.b)
+                    });
+                    if keep {
+                        let (z, information) = reverse_measurement(&e.z, &e.information);
+                        out.push(CondensedEdge {
+                            a: e.b,
+                            b: e.a,
+                            z,
+                            information,
+                        });
+                    }
+                }
+                _ => out.push(e.clone()),
+            }
+        }
+    }
+    out
+}
+
+/// What a solver's standby holds of the graph `edges` of robot `origin`: its trajectory
+/// (condensed segments and intra-robot loops) and its closures with lower robots, not its
+/// closures with higher ones: those robots hold them too and send them again once
+/// `origin` is out of their team (`condense`'s `resend_below`), so the copy costs the
+/// trajectory alone.
+pub(crate) fn trajectory_copy(origin: u8, edges: &[CondensedEdge]) -> Vec<CondensedEdge> {
+    edges
+        .iter()
+        .filter(|e| key::robot(e.b).is_some_and(|b| b <= origin))
+        .cloned()
+        .collect()
 }
 
 /// PCM settings inside the loop: probability threshold, smallest clique per robot pair,
@@ -306,8 +386,9 @@ pub(crate) fn pcm_inliers(
     graphs: &BTreeMap<u8, &[CondensedEdge]>,
     settings: PcmSettings,
 ) -> Result<BTreeSet<(u64, u64)>, DpgoError> {
-    let mut all: Vec<&CondensedEdge> = graphs.values().copied().flatten().collect();
+    let mut all = team_edges(graphs);
     all.sort_by_key(|e| (e.a, e.b));
+    let all: Vec<&CondensedEdge> = all.iter().collect();
     let keys: BTreeSet<u64> = all.iter().flat_map(|e| [e.a, e.b]).collect();
     let mut rank: BTreeMap<u64, u64> = BTreeMap::new();
     let mut back: BTreeMap<u64, u64> = BTreeMap::new();
@@ -385,10 +466,9 @@ pub(crate) fn solve_separators(
     let inliers = pcm.map(|p| pcm_inliers(graphs, p)).transpose()?;
     let inter = |e: &CondensedEdge| key::robot(e.a) != key::robot(e.b);
     let mut rejected = Vec::new();
-    let mut all: Vec<&CondensedEdge> = graphs
-        .values()
-        .copied()
-        .flatten()
+    let edges = team_edges(graphs);
+    let mut all: Vec<&CondensedEdge> = edges
+        .iter()
         .filter(|e| {
             let keep = !inter(e) || inliers.as_ref().is_none_or(|i| i.contains(&(e.a, e.b)));
             if !keep {
@@ -533,7 +613,10 @@ pub(crate) fn check_graph(origin: u8, edges: &[CondensedEdge]) -> Result<(), Str
         let (ra, rb) = (key::robot(e.a), key::robot(e.b));
         let ok = match (ra, rb) {
             (Some(a), Some(b)) if a == origin && b == origin => e.a != e.b,
-            (Some(a), Some(b)) if a == origin => b > origin,
+            // A closure with a lower robot: sent again because that robot left (see
+            // `condense`); `team_edges` keeps it only when the lower robot's graph is held
+            // without it.
+            (Some(a), Some(b)) if a == origin => b != origin,
             _ => false,
         };
         if !ok {
@@ -657,6 +740,52 @@ mod tests {
             .collect();
         let m2 = segment_model(&poses, &chain_edges(&fewer, 5), 0, 4).unwrap();
         assert!((m2.h - h).amax() > 1e-3 * h.amax());
+    }
+
+    fn graph_edge(a: (u8, u64), b: (u8, u64), x: f64) -> CondensedEdge {
+        CondensedEdge {
+            a: key::symbol(a.0, a.1).unwrap(),
+            b: key::symbol(b.0, b.1).unwrap(),
+            z: SE3::translation(x, 0.0, 0.0),
+            information: TangentMatrix::identity(),
+        }
+    }
+
+    /// A closure a robot sends again because the lower robot left counts once: kept,
+    /// reversed, over a trajectory copy of the lower robot; dropped beside the lower
+    /// robot's full graph (which carries it), without any graph of the lower robot, and
+    /// when the copy does not hold its pose.
+    #[test]
+    fn a_closure_sent_again_counts_once() {
+        let chain = graph_edge((0, 0), (0, 5), 5.0);
+        let closure = graph_edge((0, 5), (1, 2), 1.0);
+        let again = graph_edge((1, 2), (0, 5), -1.0);
+        let full = vec![chain.clone(), closure.clone()];
+        let copy = trajectory_copy(0, &full);
+        assert_eq!(copy, vec![chain.clone()]);
+        let mine = vec![graph_edge((1, 0), (1, 2), 2.0), again.clone()];
+        let closures = |graphs: BTreeMap<u8, &[CondensedEdge]>| -> Vec<CondensedEdge> {
+            team_edges(&graphs)
+                .into_iter()
+                .filter(|e| key::robot(e.a) != key::robot(e.b))
+                .collect()
+        };
+        let over_copy = closures(BTreeMap::from([(0, copy.as_slice()), (1, mine.as_slice())]));
+        assert_eq!(over_copy.len(), 1);
+        assert_eq!((over_copy[0].a, over_copy[0].b), (closure.a, closure.b));
+        assert!(over_copy[0].z.inverse().compose(&closure.z).log().norm() < 1e-12);
+        let beside_full = closures(BTreeMap::from([(0, full.as_slice()), (1, mine.as_slice())]));
+        assert_eq!(beside_full, vec![closure.clone()]);
+        assert!(closures(BTreeMap::from([(1, mine.as_slice())])).is_empty());
+        let short = vec![graph_edge((0, 0), (0, 4), 4.0)];
+        assert!(closures(BTreeMap::from([
+            (0, short.as_slice()),
+            (1, mine.as_slice())
+        ]))
+        .is_empty());
+        // A graph may carry it (a robot's own closure), a lower robot's copy too.
+        assert!(check_graph(1, &mine).is_ok());
+        assert!(check_graph(1, &[graph_edge((1, 2), (1, 2), 0.0)]).is_err());
     }
 
     /// The between-factor of a model has the model's gradient and Gauss-Newton Hessian at

@@ -193,8 +193,10 @@ pub struct AgentOptions {
     pub link_delivers: bool,
     /// Condensed method: the solver copies its own graph to a standby robot, so that the
     /// robot that takes over when it leaves keeps its trajectory and closures (`team`'s
-    /// "Standby copy"). Off by default: the copy costs the solver's whole graph once more
-    /// (on KITTI 00 0.10 of the centralized bytes, past the 0.25 bound over the team link).
+    /// "Standby copy"). On by default: the copy is the solver's trajectory alone (its
+    /// closures are sent again by the robots above it once it left), sent when the solver
+    /// is settled or `patience` behind, so it costs about the solver's condensed segments
+    /// once (BENCHMARKS.md, "A standby copy on by default").
     pub standby_copy: bool,
 }
 
@@ -234,7 +236,7 @@ impl Default for AgentOptions {
             pcm: None,
             graph_updates: true,
             link_delivers: false,
-            standby_copy: false,
+            standby_copy: true,
             // Each leaves out changes worth at most this fraction of the χ² in total (per
             // segment / separator times their count): 1e-5, ten times below the 1e-4 the
             // distributed estimate must stay within.
@@ -671,6 +673,22 @@ impl Agent {
     /// (or with DGS, which has no team solve).
     pub fn team_stop_reason(&self) -> Option<crate::solver::StopReason> {
         self.team.solutions.get(&self.robot).and_then(|s| s.stop)
+    }
+
+    /// The solve behind this robot's separator estimates (condensed method): the solver's
+    /// solve count as it came down with them (`PoseEstimates::round`), on the solver its
+    /// own count. `None` before any solution (or with DGS).
+    pub fn team_round(&self) -> Option<u64> {
+        self.team.solutions.get(&self.robot).map(|s| s.round)
+    }
+
+    /// Per robot this one hands estimates down to (the robots of each present child's
+    /// subtree): the solve round of the estimates it handed to the link for that robot.
+    /// Once they arrive, that robot's [`Self::team_round`] is this round; until then it
+    /// still settles on an older solve — which [`Self::converged`] cannot see on either
+    /// side, as the link, not the agent, delivers them (`link_delivers`).
+    pub fn rounds_handed_down(&self) -> BTreeMap<u8, u64> {
+        self.condensed_rounds_handed_down()
     }
 
     /// The robot's poses, in the team's frame once [`Self::anchored`].

@@ -28,14 +28,19 @@
 //! child's subtree that moved beyond `send_pose` from what the child holds (all of them
 //! when the frame changed), and relays forward them down.
 //!
-//! **Standby copy** (`SeparatorGraph` downwards; with `AgentOptions::standby_copy`): the
-//! solver sends its lowest child
-//! its own graph (and the copies it holds of solvers before it) as it sends graphs up. A
-//! copy travels up from whoever holds it once its origin is neither on the path to the
-//! solver nor in the subtree, so when the solver leaves, the robot that takes over solves
-//! with the leaver's trajectory and every closure it held (the lowest key, and so the
-//! frame, stay the leaver's first pose); the other robots' graphs come from their owners.
-//! When the solver returns it is the root again and the copies stay where they are.
+//! **Standby copy** (`SeparatorGraph` downwards; `AgentOptions::standby_copy`, on by
+//! default): the solver sends its lowest child its trajectory — its graph without its
+//! closures with higher robots, condensed past the ends of closures PCM rejected
+//! (`Agent::own_copy`) — and the copies it holds of solvers before it, as it sends graphs
+//! up, once it is settled or the copy has been behind for `patience` (`Agent::copy_due`).
+//! A copy travels up from whoever holds it once its origin is neither on the path to the
+//! solver nor in the subtree. Every robot sends its closures with robots below its solver
+//! (so out of its team) again in its own graph (`condensed::condense`'s `resend_below`),
+//! and the solver keeps each closure once (`condensed::team_edges`). So when the solver
+//! leaves, the robot that takes over solves with the leaver's trajectory and every closure
+//! it had (the lowest key, and so the frame, stay the leaver's first pose); the other
+//! robots' graphs come from their owners. When the solver returns it is the root again,
+//! the robots drop the closures they sent again, and the copies stay where they are.
 //!
 //! Every message is acknowledged per kind, resent when lost; a neighbour that restarts
 //! (a higher epoch) is taken to hold nothing. A robot out of range keeps its last
@@ -55,6 +60,11 @@ use crate::solver::{Criterion, StopReason};
 use super::condensed::{self, CondensedEdge};
 use super::link::{Arrival, Outbox, Received};
 use super::{Agent, DpgoError};
+
+/// The standby's copy carries a chain segment of at most this many steps as its odometry
+/// edges (exact) rather than one condensed factor: an odometry edge costs ~22 bytes on the
+/// wire (its information is the odometry's, sent once), a factor ~68 (its own information).
+const COPY_RAW_STEPS: usize = 3;
 
 /// The smallest χ² threshold of relinearizing and sending (a team whose χ² is zero would
 /// otherwise resend rounding noise).
@@ -147,6 +157,9 @@ pub(crate) struct TeamState {
     /// to the solver nor in its subtree travel up, so the next solver keeps their
     /// trajectories and closures ([`Agent::upward_origins`]).
     pub standby: BTreeSet<u8>,
+    /// Solver: since when (agent clock) the standby's copy is behind its graph (see
+    /// [`Agent::copy_due`]).
+    pub copy_behind_since: Option<std::time::Duration>,
 }
 
 /// What a robot knows of one neighbour for the condensed method.
@@ -490,6 +503,124 @@ impl Agent {
             .collect()
     }
 
+    /// With the standby copy, closures with robots below the team's solver are sent again in
+    /// this robot's graph (`condensed::condense`): such a robot is out of the team (the
+    /// solver is the lowest robot reached), and the solver holds its graph, if at all, as a
+    /// standby copy without them (`condensed::trajectory_copy`). Without the copy nothing
+    /// holds the lower robot's trajectory, and the closures would hang free: not sent.
+    fn resend_below(&self) -> u8 {
+        if self.options.standby_copy {
+            self.root()
+        } else {
+            0
+        }
+    }
+
+    /// The closures this robot sends again (see [`Self::resend_below`]), as key pairs.
+    fn resent_closures(&self) -> Vec<(u64, u64)> {
+        let below = self.resend_below();
+        self.closures
+            .iter()
+            .filter(|c| key::robot(c.other).is_some_and(|o| o < below))
+            .map(|c| (self.keys[c.own], c.other))
+            .collect()
+    }
+
+    /// Whether the solver sends its standby the copy now. The copy is the trajectory alone
+    /// (`condensed::trajectory_copy`), and it is sent when the solver is settled — its own
+    /// graph is the one its last solve used and solving its interior again changed
+    /// nothing — or once the copy has been behind for `patience`. While the team iterates
+    /// to its optimum every relinearization makes a new version of nearly every segment,
+    /// and copying each of them costs the graph again per round; the settled version is
+    /// the one a takeover needs (exact at the optimum), and the bound keeps the copy at
+    /// most `patience` behind while keyframes keep arriving.
+    fn copy_due(&self, behind: bool) -> bool {
+        if !behind {
+            return false;
+        }
+        let own = self.team.graphs.get(&self.robot).map(|h| h.version);
+        let versions: BTreeMap<u8, u64> = self
+            .team
+            .graphs
+            .iter()
+            .map(|(o, h)| (*o, h.version))
+            .collect();
+        let settled = !self.own_graph_dirty
+            && !self.team.interior_dirty
+            && own.is_some()
+            && versions == self.team.solved_with
+            && self.team.solutions.get(&self.robot).map(|s| s.version) == own;
+        let waited = self
+            .team
+            .copy_behind_since
+            .is_some_and(|t| self.now.saturating_sub(t) >= self.options.patience);
+        settled || waited
+    }
+
+    /// The standby's copy of this robot's own graph: its trajectory condensed onto the
+    /// separators the team still uses — the ends of the closures PCM did not reject (its
+    /// verdicts are known here, at the solver), the first pose, gaps and intra-robot loops —
+    /// and its closures with lower robots ([`condensed::trajectory_copy`]). A rejected
+    /// closure's own end is an interior pose again: at the team's optimum only odometry
+    /// acts on it, where the estimate has it, so condensing past it at the current
+    /// estimate keeps the gradient and Hessian of the trajectory (the copy is sent when
+    /// the solver is settled, [`Self::copy_due`]). A rejected closure that a robot sends
+    /// again after this one left names a pose the copy does not hold, and the next solver
+    /// leaves it out (`condensed::team_edges`), as PCM did. Segments of at most
+    /// [`COPY_RAW_STEPS`] steps travel as their odometry edges.
+    fn own_copy(&self) -> Result<Vec<CondensedEdge>, DpgoError> {
+        let rejected: BTreeSet<(u64, u64)> = self.rejected.iter().copied().collect();
+        let kept: Vec<super::local::OwnClosure> = self
+            .closures
+            .iter()
+            .filter(|c| {
+                let own = self.keys[c.own];
+                !rejected.contains(&(own, c.other)) && !rejected.contains(&(c.other, own))
+            })
+            .cloned()
+            .collect();
+        let condensed = condensed::condense(
+            self.robot,
+            &self.keys,
+            &self.poses,
+            &self.edges,
+            &kept,
+            self.resend_below(),
+            COPY_RAW_STEPS,
+        )?;
+        // A segment the team's graph holds between the same separators travels as held
+        // (the factor the solver uses; its model changed by less than the relinearizing
+        // threshold since): a copy sent again is then an update of the segments that
+        // moved, not of all of them.
+        let mut held: BTreeMap<(u64, u64), Vec<&CondensedEdge>> = BTreeMap::new();
+        if let Some(h) = self.team.graphs.get(&self.robot) {
+            for e in h.edges.iter() {
+                held.entry((e.a, e.b)).or_default().push(e);
+            }
+        }
+        let mut edges = Vec::with_capacity(condensed.len());
+        for c in condensed {
+            match held
+                .get(&(c.edge.a, c.edge.b))
+                .filter(|_| c.model.is_some())
+            {
+                Some(same) => edges.extend(same.iter().map(|e| (*e).clone())),
+                None => edges.push(condensed::quantized(self.robot, &c.edge)?),
+            }
+        }
+        Ok(condensed::trajectory_copy(self.robot, &edges))
+    }
+
+    /// The closures of this robot PCM rejected in the last solve, as key pairs.
+    fn own_rejected(&self) -> BTreeSet<(u64, u64)> {
+        let mine = |k: u64| key::robot(k) == Some(self.robot);
+        self.rejected
+            .iter()
+            .filter(|(a, b)| mine(*a) || mine(*b))
+            .copied()
+            .collect()
+    }
+
     /// The best route: lowest root, then fewest hops, then lowest next hop.
     fn best_path(&self) -> Vec<u8> {
         let mut best = ((self.robot, 1usize, self.robot), vec![self.robot]);
@@ -534,8 +665,14 @@ impl Agent {
             if parent(&path) != parent(&self.team.path) {
                 self.team.session += 1;
             }
+            let resent_before = self.resent_closures();
             self.team.path = path;
             self.team.path_changed_at = self.stats.steps;
+            // The solver left (or came back): the closures with it that this robot sends
+            // change, and its graph goes out with them before anything is solved.
+            if self.resent_closures() != resent_before {
+                self.relinearize()?;
+            }
         }
         let mut solved = false;
         if self.root() == self.robot {
@@ -599,7 +736,24 @@ impl Agent {
             &self.options.solver,
         )?;
         self.stats.rejected_closures = solve.rejected.len() as u64;
+        let rejected_before = self.own_rejected();
         self.rejected = solve.rejected;
+        // The standby's copy of the own graph depends on PCM's verdicts on its closures
+        // ([`Self::own_copy`]): when they change, the graph gets a new version (same
+        // edges), so that the copy is made and sent again.
+        if self.options.standby_copy && self.own_rejected() != rejected_before {
+            if let Some(held) = self.team.graphs.get(&self.robot).cloned() {
+                self.team.own_counter += 1;
+                let version = self.own_version();
+                self.team.graphs.insert(
+                    self.robot,
+                    Held {
+                        version,
+                        edges: held.edges,
+                    },
+                );
+            }
+        }
         self.team.stiffness = solve.stiffness;
         if let Some(summary) = solve.summary {
             self.team.last_solve = Some(summary);
@@ -668,14 +822,20 @@ impl Agent {
     /// spreading, the subtree holds only the robots whose routes arrived, and a solve then
     /// sends every robot estimates that the next solve, with the late graphs, replaces.
     /// Every robot of the team is named by a closure in some graph of it, so once this is
-    /// false the solver holds every graph of its team (or waited its bounded time).
+    /// false the solver holds every graph of its team (or waited its bounded time). A
+    /// closure a graph carries with a lower robot (sent again because that robot is out of
+    /// the team, see [`Self::resend_below`]) names no robot to wait for.
     fn referenced_graph_missing(&self) -> bool {
         let away = |r: u8| self.neighbors.get(&r).is_some_and(|n| !n.present);
         let named = self
             .team
             .graphs
-            .values()
-            .flat_map(|h| h.edges.iter())
+            .iter()
+            .flat_map(|(o, h)| {
+                h.edges
+                    .iter()
+                    .filter(move |e| key::robot(e.b).is_none_or(|b| b >= *o))
+            })
             .flat_map(|e| [e.a, e.b])
             .filter_map(key::robot)
             .chain(self.neighbors.keys().copied());
@@ -754,8 +914,15 @@ impl Agent {
         let poses = condensed::solve_interior(&self.poses, &self.edges, &fixed)?;
         let mut edges = Vec::new();
         let mut segments = BTreeMap::new();
-        let condensed =
-            condensed::condense(self.robot, &self.keys, &poses, &self.edges, &self.closures)?;
+        let condensed = condensed::condense(
+            self.robot,
+            &self.keys,
+            &poses,
+            &self.edges,
+            &self.closures,
+            self.resend_below(),
+            1,
+        )?;
         let own_chi2: f64 = self
             .edges
             .iter()
@@ -907,6 +1074,24 @@ impl Agent {
         })
     }
 
+    /// See [`Agent::rounds_handed_down`]: per robot of each present child's subtree, the
+    /// round of what this robot handed to the link for it (the child's view, delivered or
+    /// in flight).
+    pub(crate) fn condensed_rounds_handed_down(&self) -> BTreeMap<u8, u64> {
+        let mut out = BTreeMap::new();
+        for (id, bits) in self.children() {
+            let Some(n) = self.neighbors.get(&id) else {
+                continue;
+            };
+            for r in members(bits) {
+                if let Some(view) = n.team.estimates_view(r) {
+                    out.insert(r, view.round);
+                }
+            }
+        }
+        out
+    }
+
     fn route_for(&self, neighbor: u8, parent: Option<u8>, subtree: u64) -> Route {
         Route {
             path: self.team.path.clone(),
@@ -1007,14 +1192,34 @@ impl Agent {
         let mut graphs = Vec::new();
         let settled = self.stats.steps > self.team.path_changed_at;
         let standby = self.standby_child(&children);
-        let origins = if !settled {
-            Vec::new()
+        let behind = |origins: &[u8]| {
+            origins.iter().any(|o| {
+                self.team.graphs.get(o).is_some_and(|h| {
+                    n.and_then(|l| l.graph_view(*o))
+                        .is_none_or(|v| v.version < h.version)
+                })
+            })
+        };
+        let (origins, copy) = if !settled {
+            (Vec::new(), false)
         } else if Some(neighbor) == parent {
-            self.upward_origins(subtree)
+            (self.upward_origins(subtree), false)
         } else if standby == Some(neighbor) {
-            self.replicated_origins(children.get(&neighbor).copied().unwrap_or(0))
+            let origins = self.replicated_origins(children.get(&neighbor).copied().unwrap_or(0));
+            let behind = behind(&origins);
+            if !behind {
+                self.team.copy_behind_since = None;
+            } else if self.team.copy_behind_since.is_none() {
+                self.team.copy_behind_since = Some(now);
+            }
+            if self.copy_due(behind) {
+                self.team.copy_behind_since = None;
+                (origins, true)
+            } else {
+                (Vec::new(), true)
+            }
         } else {
-            Vec::new()
+            (Vec::new(), false)
         };
         for o in origins {
             let Some(held) = self.team.graphs.get(&o) else {
@@ -1025,7 +1230,21 @@ impl Agent {
                 continue;
             }
             let base = n.and_then(|l| l.graph_base(o));
-            graphs.push((o, held.clone(), base.cloned()));
+            // The standby gets the trajectory (and the closures no teammate holds).
+            let held = if copy {
+                let edges = if o == self.robot {
+                    self.own_copy()?
+                } else {
+                    condensed::trajectory_copy(o, &held.edges)
+                };
+                Held {
+                    version: held.version,
+                    edges: Arc::new(edges),
+                }
+            } else {
+                held.clone()
+            };
+            graphs.push((o, held, base.cloned()));
         }
         // Estimates of the child's subtree, to a child.
         let mut estimates = Vec::new();

@@ -85,6 +85,12 @@ pub struct BackendSection {
     /// pairwise PCM.
     #[serde(default = "default_true")]
     pub pcm_cycles: bool,
+    /// PCM of the robot's own loop closures runs over the newest this many candidates
+    /// (plus a quarter as many kept earlier, as anchors); older ones keep their last
+    /// verdict. Bounds the maximum clique, which stalled the back-end over every candidate
+    /// of a route revisited for an hour.
+    #[serde(default = "default_intra_pcm_window")]
+    pub intra_pcm_window: usize,
     /// Write `odometry.tum`, `team_estimate.tum` and `backend.json` into the state folder
     /// this often (seconds; 0 = only when stopping).
     #[serde(default = "default_write_every_s")]
@@ -104,10 +110,11 @@ pub struct BackendSection {
     pub max_stage_s: f64,
     /// The team's solver copies its own graph to a standby (its lowest child), so that the
     /// robot taking over when the solver leaves keeps its trajectory and every closure it
-    /// held (`doorslam dpgo --standby-copy`). Off by default: the copy costs the solver's
-    /// whole graph once more (BENCHMARKS.md, "exact at convergence, and the solver's
-    /// standby copy").
-    #[serde(default)]
+    /// held (`doorslam dpgo`; `--no-standby-copy` turns it off). On by default: the copy is
+    /// the solver's trajectory alone, sent once the solver is settled, and the robots above
+    /// it send their closures with it again once it left (BENCHMARKS.md, "A standby copy
+    /// on by default").
+    #[serde(default = "default_standby_copy")]
     pub standby_copy: bool,
     /// Keys of before the timeouts were seconds: refused by name (`validate`), so an old
     /// robot.toml fails saying what replaces them rather than silently meaning steps.
@@ -134,6 +141,9 @@ fn default_pcm_threshold() -> f64 {
 fn default_min_clique() -> usize {
     2
 }
+fn default_intra_pcm_window() -> usize {
+    intra::DEFAULT_INTRA_PCM_WINDOW
+}
 fn default_write_every_s() -> f64 {
     1.0
 }
@@ -146,6 +156,9 @@ fn default_patience_s() -> f64 {
 fn default_max_stage_s() -> f64 {
     60.0
 }
+fn default_standby_copy() -> bool {
+    true
+}
 
 impl Default for BackendSection {
     fn default() -> Self {
@@ -156,11 +169,12 @@ impl Default for BackendSection {
             pcm_threshold: default_pcm_threshold(),
             pcm_min_clique: default_min_clique(),
             pcm_cycles: true,
+            intra_pcm_window: default_intra_pcm_window(),
             write_every_s: default_write_every_s(),
             resend_after_s: default_resend_after_s(),
             patience_s: default_patience_s(),
             max_stage_s: default_max_stage_s(),
-            standby_copy: false,
+            standby_copy: default_standby_copy(),
             resend_after: None,
             patience: None,
             max_stage_steps: None,
@@ -185,6 +199,12 @@ impl BackendSection {
             return Err(ServiceError::Config(
                 "backend.pcm_min_clique must be >= 1".into(),
             ));
+        }
+        if !(8..=4096).contains(&self.intra_pcm_window) {
+            return Err(ServiceError::Config(format!(
+                "backend.intra_pcm_window = {}: candidates from 8 to 4096",
+                self.intra_pcm_window
+            )));
         }
         if !(self.write_every_s.is_finite() && (0.0..=3600.0).contains(&self.write_every_s)) {
             return Err(ServiceError::Config(format!(
@@ -245,7 +265,11 @@ impl BackendSection {
                 ..AgentOptions::default()
             }),
             write_every: Duration::from_secs_f64(self.write_every_s),
-            intra_pcm: (self.pcm_threshold, self.pcm_min_clique),
+            intra_pcm: (
+                self.pcm_threshold,
+                self.pcm_min_clique,
+                self.intra_pcm_window,
+            ),
         }
     }
 }
@@ -265,8 +289,8 @@ pub struct BackendConfig {
     pub distributed: Option<AgentOptions>,
     /// How often the output files are written (zero: only when stopping).
     pub write_every: Duration,
-    /// PCM of the robot's own loop closures: probability and smallest clique.
-    pub intra_pcm: (f64, usize),
+    /// PCM of the robot's own loop closures: probability, smallest clique and window.
+    pub intra_pcm: (f64, usize, usize),
 }
 
 /// Logs what happened to one sample (rejections name robot, topic and field).
@@ -448,7 +472,7 @@ impl TeamPorts {
 pub fn run(config: &BackendConfig) -> Result<BackendReport, ServiceError> {
     let mut state = BackendState::new(config.robot_index, config.optimize_every)
         .ok_or(ServiceError::Robot(config.robot_index))?
-        .with_intra_pcm(config.intra_pcm.0, config.intra_pcm.1)
+        .with_intra_pcm(config.intra_pcm.0, config.intra_pcm.1, config.intra_pcm.2)
         .map_err(|e| ServiceError::Config(format!("backend.pcm_threshold: {e}")))?;
     let robot =
         u8::try_from(config.robot_index).map_err(|_| ServiceError::Robot(config.robot_index))?;

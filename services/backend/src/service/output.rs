@@ -64,6 +64,9 @@ pub struct ReportJson {
     pub intra_closures: usize,
     pub intra_kept: usize,
     pub intra_retracted: usize,
+    /// Own loop candidates frozen when they left PCM's window, kept and rejected.
+    pub intra_frozen_kept: usize,
+    pub intra_frozen_rejected: usize,
 }
 
 impl From<&BackendReport> for ReportJson {
@@ -84,6 +87,8 @@ impl From<&BackendReport> for ReportJson {
             intra_closures: r.intra_closures,
             intra_kept: r.intra_kept,
             intra_retracted: r.intra_retracted,
+            intra_frozen_kept: r.intra_frozen_kept,
+            intra_frozen_rejected: r.intra_frozen_rejected,
         }
     }
 }
@@ -105,6 +110,14 @@ pub struct TeamStatus {
     /// `max_iterations`, ...): the solver's own, or the one that came down with the
     /// separator estimates; null before any solution, and with the DGS method.
     pub stop_reason: Option<String>,
+    /// The team solve behind this robot's estimate: the solver's solve count that came
+    /// down with its separator estimates (on the solver, its own count); null before any.
+    pub round: Option<u64>,
+    /// Per robot (key letter) this one hands separator estimates down to: the round of the
+    /// estimates it handed to the team link for it. That robot's `round` is the same once
+    /// they arrived; until then both may say `converged` while it still holds an older
+    /// solve (the link delivers, the back-ends do not see it).
+    pub rounds_handed_down: BTreeMap<String, u64>,
     pub present: Vec<String>,
     pub neighbors: Vec<String>,
     /// Closures PCM left out of the last solve, as key labels.
@@ -158,6 +171,12 @@ impl Outputs {
                 converged: a.converged() && a.team_stop_reason().is_none_or(|s| s.is_converged()),
                 settled: a.converged(),
                 stop_reason: a.team_stop_reason().map(|s| s.as_str().to_string()),
+                round: a.team_round(),
+                rounds_handed_down: a
+                    .rounds_handed_down()
+                    .into_iter()
+                    .map(|(r, round)| (letter(r), round))
+                    .collect(),
                 present: b.present().map(letter).collect(),
                 neighbors: a.neighbors().map(letter).collect(),
                 rejected_closures: a

@@ -13,7 +13,7 @@ use super::input::{
     check_journaled_closure, check_journaled_keyframe, check_journaled_odometry, check_keyframe,
     check_odometry, check_own_closure, ClosureInput, InputError, KeyframeInput, OdometryInput,
 };
-use super::intra::{is_intra, IntraLoops};
+use super::intra::{is_intra, IntraLoops, DEFAULT_INTRA_PCM_WINDOW};
 use super::team::TeamBridge;
 use crate::graph::PoseGraph;
 use crate::journal::{Entry, JournalError, Recovery};
@@ -95,6 +95,10 @@ pub struct BackendReport {
     pub intra_closures: usize,
     pub intra_kept: usize,
     pub intra_retracted: usize,
+    /// Own loop candidates that left PCM's window (`[backend] intra_pcm_window`) with their
+    /// last verdict: kept (they stay in the graph) and rejected (forgotten).
+    pub intra_frozen_kept: usize,
+    pub intra_frozen_rejected: usize,
     pub optimizations: usize,
     pub failed_optimizations: usize,
 }
@@ -148,24 +152,31 @@ impl BackendState {
             since_optimized: 0,
             optimizer: None,
             team: None,
-            intra: IntraLoops::new(INTRA_PCM_THRESHOLD, INTRA_MIN_CLIQUE).ok()?,
+            intra: IntraLoops::new(
+                INTRA_PCM_THRESHOLD,
+                INTRA_MIN_CLIQUE,
+                DEFAULT_INTRA_PCM_WINDOW,
+            )
+            .ok()?,
             intra_in_graph: Default::default(),
             report: BackendReport::default(),
         })
     }
 
     /// PCM of the robot's own loop closures with probability `p` and smallest clique
-    /// `min_clique` (`[backend] pcm_threshold`, `pcm_min_clique`).
+    /// `min_clique` (`[backend] pcm_threshold`, `pcm_min_clique`) over the newest `window`
+    /// candidates (`intra_pcm_window`).
     pub fn with_intra_pcm(
         mut self,
         p: f64,
         min_clique: usize,
+        window: usize,
     ) -> Result<Self, crate::outliers::pcm::PcmError> {
-        self.intra = IntraLoops::new(p, min_clique)?;
+        self.intra = IntraLoops::new(p, min_clique, window)?;
         Ok(self)
     }
 
-    /// The robot's own loop closures received, and those the graph holds.
+    /// The robot's own loop closures in PCM's window, and how many the graph holds.
     pub fn intra_closures(&self) -> (&[ClosureInput], usize) {
         (self.intra.candidates(), self.intra_in_graph.len())
     }
@@ -538,17 +549,28 @@ impl BackendState {
     /// (a closure PCM drops again is taken out by rebuilding the graph's edges; the
     /// distributed back-end, which cannot take an edge back, keeps it and the count says so).
     fn apply_intra(&mut self) {
-        match self.intra.check(&self.graph) {
-            Ok(false) => return,
-            Ok(true) => {}
+        let checked = match self.intra.check(&self.graph) {
+            Ok(c) if c.changed => c,
+            Ok(_) => return,
             Err(e) => {
                 tracing::error!("backend: PCM of the robot's own loops: {e}");
                 return;
             }
-        }
+        };
+        (
+            self.report.intra_frozen_kept,
+            self.report.intra_frozen_rejected,
+        ) = self.intra.frozen();
         let kept: std::collections::BTreeSet<(u64, u64)> =
             self.intra.kept().map(|c| (c.key_a, c.key_b)).collect();
-        let dropped: Vec<(u64, u64)> = self.intra_in_graph.difference(&kept).copied().collect();
+        // Only the window's verdicts can change: a frozen kept closure stays.
+        let dropped: Vec<(u64, u64)> = self
+            .intra
+            .candidates()
+            .iter()
+            .map(|c| (c.key_a, c.key_b))
+            .filter(|p| self.intra_in_graph.contains(p) && !kept.contains(p))
+            .collect();
         if !dropped.is_empty() {
             self.report.intra_retracted += dropped.len();
             tracing::warn!(
@@ -573,9 +595,10 @@ impl BackendState {
                 self.intra_in_graph.remove(p);
             }
         }
-        let new: Vec<ClosureInput> = self
-            .intra
-            .kept()
+        let new: Vec<ClosureInput> = checked
+            .frozen_kept
+            .iter()
+            .chain(self.intra.kept())
             .filter(|c| !self.intra_in_graph.contains(&(c.key_a, c.key_b)))
             .cloned()
             .collect();

@@ -1,7 +1,7 @@
 //! The service's two files under `<run_dir>/<robot>/`:
 //! - `frontend.json`: the status (counters, tracking state, timing), rewritten every second
 //!   and at exit, for operators and tests;
-//! - `frontend.resume`: the last keyframe published (id, stamp, pose), rewritten after
+//! - `frontend.resume`: the last keyframe published (id, stamp, pose, the edge into it), rewritten after
 //!   each keyframe, so a restarted front-end continues the keyframe ids (the back-end
 //!   skips ids it already has as duplicates; see [`super::FrontendState::new`] for the one
 //!   id it skips) and links its first keyframe to that one.
@@ -11,11 +11,15 @@
 
 use std::path::{Path, PathBuf};
 
+use doorslam_geometry::information::{
+    check_information, matrix_from_upper, upper_from_matrix, InformationCheck,
+};
 use doorslam_geometry::{pose_from_array, pose_to_array};
 use serde::{Deserialize, Serialize};
 
 use super::state::{Resume, Snapshot};
 use super::ServiceError;
+use crate::keyframe::OdometryEdge;
 
 /// `frontend.json`: the snapshot plus who and since when.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -38,6 +42,20 @@ struct ResumeFile {
     stamp_ns: u64,
     /// x y z qx qy qz qw
     pose: [f64; 7],
+    /// The odometry edge into `keyframe` (absent in files of before it was kept, and for a
+    /// robot's first keyframe).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    edge: Option<ResumeEdge>,
+}
+
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ResumeEdge {
+    from: u64,
+    /// x y z qx qy qz qw of `keyframe` in the frame of `from`.
+    relative: [f64; 7],
+    /// Upper triangle of the information, row by row (as on the odometry topic).
+    information: Vec<f64>,
 }
 
 fn write_atomically(path: &Path, text: &str) -> Result<(), ServiceError> {
@@ -82,6 +100,11 @@ impl Files {
             keyframe: resume.keyframe,
             stamp_ns: resume.stamp_ns,
             pose: pose_to_array(&resume.pose),
+            edge: resume.edge.map(|e| ResumeEdge {
+                from: e.from,
+                relative: pose_to_array(&e.relative),
+                information: upper_from_matrix(&e.information).to_vec(),
+            }),
         };
         let text = serde_json::to_string(&file).map_err(|e| ServiceError::Resume {
             path: self.resume.clone(),
@@ -117,10 +140,39 @@ impl Files {
             )));
         }
         let pose = pose_from_array(&file.pose).map_err(|e| bad(format!("pose: {e}")))?;
+        let edge = match file.edge {
+            None => None,
+            Some(e) => {
+                if e.from >= file.keyframe {
+                    return Err(bad(format!(
+                        "edge from keyframe {} into keyframe {}: not from an earlier one",
+                        e.from, file.keyframe
+                    )));
+                }
+                let relative =
+                    pose_from_array(&e.relative).map_err(|x| bad(format!("edge: {x}")))?;
+                let upper: [f64; 21] = e.information.as_slice().try_into().map_err(|_| {
+                    bad(format!(
+                        "edge information: {} values, not the 21 of an upper triangle",
+                        e.information.len()
+                    ))
+                })?;
+                let information = matrix_from_upper(&upper);
+                check_information(&information, 6, InformationCheck::PositiveDefinite)
+                    .map_err(|x| bad(format!("edge information: {x}")))?;
+                Some(OdometryEdge {
+                    from: e.from,
+                    to: file.keyframe,
+                    relative,
+                    information,
+                })
+            }
+        };
         Ok(Some(Resume {
             keyframe: file.keyframe,
             stamp_ns: file.stamp_ns,
             pose,
+            edge,
         }))
     }
 }

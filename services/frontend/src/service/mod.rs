@@ -288,6 +288,19 @@ pub fn run(config: &FrontendConfig) -> Result<Snapshot, ServiceError> {
         keyframes: Sender::new(&node, &config.robot, Topic::Keyframes)?,
         odometry: Sender::new(&node, &config.robot, Topic::Odometry)?,
     };
+    // The edge into the last keyframe, again: the previous process may have died with it
+    // published and not yet taken by the back-end (see `Resume::edge`). Senders keep their
+    // history for consumers that connect later, so the back-end gets it when it is up.
+    if let Some((stamp_ns, edge)) = resume.and_then(|r| Some((r.stamp_ns, r.edge?))) {
+        channels
+            .odometry
+            .send_copy(&ipc_edge(config.robot_index, stamp_ns, &edge))?;
+        tracing::info!(
+            from = edge.from,
+            to = edge.to,
+            "frontend: published again the odometry edge into the last keyframe"
+        );
+    }
     let mut writer = Writer {
         files,
         start: Instant::now(),

@@ -28,6 +28,12 @@ pub struct Resume {
     pub keyframe: u64,
     pub stamp_ns: u64,
     pub pose: SE3,
+    /// The odometry edge into that keyframe as it was published (none for a robot's first
+    /// keyframe). A restarted process publishes it again: the edge goes out before its
+    /// keyframe on another topic, so a kill of the whole robot can leave the back-end with
+    /// the keyframe journalled and not the edge, and that keyframe would hang on the weak
+    /// restart prior alone (metres off). The back-end counts a copy it has as a duplicate.
+    pub edge: Option<OdometryEdge>,
 }
 
 /// A frame the service did not give to the odometry, and why.
@@ -346,6 +352,7 @@ impl FrontendState {
                 keyframe: kf.id,
                 stamp_ns: kf.stamp_ns,
                 pose: kf.pose,
+                edge: None,
             });
             self.first_keyframe.get_or_insert(kf.id);
             step.keyframe = Some(kf);
@@ -365,6 +372,11 @@ impl FrontendState {
                 to: self.id_base + e.to,
                 ..e
             });
+        }
+        // The edge into the new keyframe (its odometry, or the restart link of a segment's
+        // first keyframe), kept with it for a restart.
+        if let (Some(kf), Some(last)) = (&step.keyframe, self.last_keyframe.as_mut()) {
+            last.edge = step.edges.iter().rev().find(|e| e.to == kf.id).copied();
         }
         self.counters.keyframes += step.keyframe.is_some() as u64;
         self.counters.edges += step.edges.len() as u64;
