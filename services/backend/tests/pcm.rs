@@ -504,3 +504,62 @@ fn a_contradicted_triangle_does_not_go_to_the_larger_closure_sets() {
         assert_eq!(kept(Some(liar), true), ([3, 9, 0], 9), "liar {liar}");
     }
 }
+
+/// The odometry kept up to date while a graph grows (as the back-end's own-loop PCM keeps
+/// it: only new keyframes and steps chained) equals the one chained from the whole graph,
+/// whatever order poses and edges arrive in: appended at the end, or filling a gap in the
+/// middle of a robot's flight (which splits and then joins segments).
+#[test]
+fn odometry_kept_up_to_date_equals_odometry_chained_at_once() {
+    let full = load("clean/example_2robots", 2);
+    let keys = full.keys().to_vec();
+    let at_once = Odometry::from_graph(&full).unwrap();
+    // Poses in a scrambled order (a fixed permutation), each edge added as soon as both of
+    // its poses are in; the odometry brought up to date every 7 poses.
+    let n = keys.len();
+    let order: Vec<usize> = (0..n).map(|i| (i * 37 + 11) % n).collect();
+    assert_eq!(
+        order.iter().collect::<BTreeSet<_>>().len(),
+        n,
+        "not a permutation"
+    );
+    let mut grown = PoseGraph::new();
+    let mut added = vec![false; full.edges().len()];
+    let mut odo = Odometry::default();
+    for (step, &i) in order.iter().enumerate() {
+        grown.add_pose(keys[i], full.poses()[i]);
+        for (n_edge, e) in full.edges().iter().enumerate() {
+            let (a, b) = (keys[e.i], keys[e.j]);
+            if let (false, Some(ia), Some(ib)) =
+                (added[n_edge], grown.index_of(a), grown.index_of(b))
+            {
+                grown.add_edge(ia, ib, e.measured, e.information).unwrap();
+                added[n_edge] = true;
+            }
+        }
+        if step % 7 == 0 {
+            odo.update(&grown).unwrap();
+        }
+    }
+    odo.update(&grown).unwrap();
+    let mut compared = 0;
+    for (x, &u) in keys.iter().enumerate() {
+        for &v in keys.iter().skip(x) {
+            match (at_once.between(u, v), odo.between(u, v)) {
+                (None, None) => {}
+                (Some((t1, s1)), Some((t2, s2))) => {
+                    let dt = (t1.inverse() * t2).translation.vector.norm();
+                    let ds = (s1 - s2).norm() / s1.norm().max(1e-12);
+                    assert!(dt < 1e-9 && ds < 1e-9, "{u} - {v}: {dt} m, {ds} relative");
+                    compared += 1;
+                }
+                (a, b) => panic!(
+                    "{u} - {v}: at once {}, kept up to date {}",
+                    a.is_some(),
+                    b.is_some()
+                ),
+            }
+        }
+    }
+    assert!(compared > 400, "only {compared} pairs on one segment");
+}

@@ -24,7 +24,7 @@
 //! same batch or in a later [`Pcm::run`], are listed in [`PcmSummary::duplicates`] and
 //! share its verdict (inliers are reported by keys).
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::time::{Duration, Instant};
 
 use nalgebra::{Isometry3, Matrix6};
@@ -83,44 +83,73 @@ type Uncertain = (Isometry3<f64>, Matrix6<f64>);
 pub struct Odometry {
     /// Per robot: index -> (segment, T₀ₘ, Σ₀ₘ at m).
     chains: BTreeMap<Option<u8>, BTreeMap<u64, ChainEntry>>,
+    /// The steps chained so far: (robot, index) -> measurement to index + 1 and its
+    /// covariance (the first odometry edge between the two poses).
+    steps: HashMap<(Option<u8>, u64), Uncertain>,
 }
 
 impl Odometry {
     /// Chains the odometry edges (consecutive indices of one robot) of `graph`.
     pub fn from_graph(graph: &PoseGraph<Isometry3<f64>>) -> Result<Self, PcmError> {
-        // (robot, index) -> (measurement to index + 1, its covariance).
-        let mut steps: BTreeMap<(Option<u8>, u64), Uncertain> = BTreeMap::new();
+        let mut odo = Odometry::default();
+        odo.update(graph)?;
+        Ok(odo)
+    }
+
+    /// Brings the chains up to `graph`, a graph that holds every pose and odometry edge of
+    /// the graphs this was built from, and maybe more (odometry edges never change once in
+    /// a graph): only what is new costs. A robot's chain is recomputed from the first index
+    /// whose pose or step is new, so a keyframe appended at the end costs one step and a
+    /// gap filled in the middle rechains the rest of that robot's flight. The chains are
+    /// then those of [`Self::from_graph`] on `graph`.
+    pub fn update(&mut self, graph: &PoseGraph<Isometry3<f64>>) -> Result<(), PcmError> {
         let keys = graph.keys();
+        // Per robot: the first index to chain again, and the indices new to its chain.
+        let mut from: BTreeMap<Option<u8>, u64> = BTreeMap::new();
+        let mark = |from: &mut BTreeMap<Option<u8>, u64>, robot, index| {
+            let f = from.entry(robot).or_insert(index);
+            *f = (*f).min(index);
+        };
         for e in graph.edges() {
             if graph.edge_class(e) != EdgeClass::Odometry {
                 continue;
             }
-            let c = closure_of(keys[e.i], keys[e.j], e.measured, &e.information)?;
+            let (a, b) = (keys[e.i], keys[e.j]);
+            let lower = (key::robot(a), key::index(a).min(key::index(b)));
+            if self.steps.contains_key(&lower) {
+                // The first edge between two poses is their step (as in `from_graph`).
+                continue;
+            }
+            let c = closure_of(a, b, e.measured, &e.information)?;
             let c = if key::index(c.u) < key::index(c.v) {
                 c
             } else {
                 c.reversed()
             };
-            steps
-                .entry((key::robot(c.u), key::index(c.u)))
-                .or_insert((c.measured, c.covariance));
+            self.steps.insert(lower, (c.measured, c.covariance));
+            mark(&mut from, lower.0, lower.1 + 1);
         }
-        let mut odo = Odometry::default();
+        let mut new: BTreeMap<Option<u8>, Vec<u64>> = BTreeMap::new();
         for &k in keys {
-            odo.chains.entry(key::robot(k)).or_default();
+            let (robot, index) = (key::robot(k), key::index(k));
+            if !self.chains.entry(robot).or_default().contains_key(&index) {
+                mark(&mut from, robot, index);
+                new.entry(robot).or_default().push(index);
+            }
         }
-        for (robot, chain) in odo.chains.iter_mut() {
-            let mut indices: Vec<u64> = keys
-                .iter()
-                .filter(|k| key::robot(**k) == *robot)
-                .map(|k| key::index(*k))
-                .collect();
+        for (robot, first) in from {
+            let chain = self.chains.entry(robot).or_default();
+            let mut indices: Vec<u64> = chain.range(first..).map(|(&m, _)| m).collect();
+            indices.extend(new.remove(&robot).unwrap_or_default());
             indices.sort_unstable();
-            let mut segment = 0;
-            let mut prev: Option<(u64, Isometry3<f64>, Matrix6<f64>)> = None;
+            indices.dedup();
+            // Segments only need to differ: the new ones number after the last one kept.
+            let mut prev: Option<(u64, ChainEntry)> =
+                chain.range(..first).next_back().map(|(&m, &e)| (m, e));
+            let mut segment = prev.map_or(0, |(_, (s, _, _))| s);
             for m in indices {
-                let entry = match prev {
-                    Some((p, t, s)) if p + 1 == m => match steps.get(&(*robot, p)) {
+                let (t, s) = match prev {
+                    Some((p, (_, t, s))) if p + 1 == m => match self.steps.get(&(robot, p)) {
                         Some((z, sz)) => {
                             let ad = z.inverse().adjoint();
                             (t * z, ad * s * ad.transpose() + sz)
@@ -135,11 +164,12 @@ impl Odometry {
                         (Isometry3::identity(), Matrix6::zeros())
                     }
                 };
-                chain.insert(m, (segment, entry.0, entry.1));
-                prev = Some((m, entry.0, entry.1));
+                let entry = (segment, t, s);
+                chain.insert(m, entry);
+                prev = Some((m, entry));
             }
         }
-        Ok(odo)
+        Ok(())
     }
 
     /// Odometric `x̂ᵤ⁻¹ x̂ᵥ` of two poses of one robot and its covariance, if both lie on
@@ -356,6 +386,20 @@ impl Pcm {
     pub fn run(&mut self, graph: &PoseGraph<Isometry3<f64>>) -> Result<PcmSummary, PcmError> {
         let start = Instant::now();
         let odo = Odometry::from_graph(graph)?;
+        let mut s = self.run_with(graph, &odo)?;
+        s.time_s = start.elapsed().as_secs_f64();
+        Ok(s)
+    }
+
+    /// [`Self::run`] with the odometry chained already (a caller that checks a growing
+    /// graph again and again keeps it with [`Odometry::update`]); `graph` then needs only
+    /// the poses the candidate edges join.
+    pub fn run_with(
+        &mut self,
+        graph: &PoseGraph<Isometry3<f64>>,
+        odo: &Odometry,
+    ) -> Result<PcmSummary, PcmError> {
+        let start = Instant::now();
         let keys = graph.keys();
         let wanted = match self.scope {
             Scope::InterRobot => EdgeClass::InterLoop,
@@ -416,7 +460,7 @@ impl Pcm {
             self.problems
                 .entry(pair)
                 .or_default()
-                .add(closures, &odo, self.gamma, self.budget);
+                .add(closures, odo, self.gamma, self.budget);
         }
         let mut s = PcmSummary {
             closures: 0,
@@ -431,7 +475,7 @@ impl Pcm {
         };
         let cycles = self.cycles && self.scope == Scope::InterRobot;
         let aside = if cycles {
-            super::cycles::contradicted_pairs(&self.problems, &odo, self.gamma, self.min_clique)
+            super::cycles::contradicted_pairs(&self.problems, odo, self.gamma, self.min_clique)
         } else {
             Default::default()
         };
@@ -453,7 +497,7 @@ impl Pcm {
         if cycles {
             let added = super::cycles::confirm_through_cycles(
                 &self.problems,
-                &odo,
+                odo,
                 self.gamma,
                 self.min_clique,
                 &aside,

@@ -21,7 +21,7 @@ use doorslam_geometry::{key, SE3};
 
 use super::input::ClosureInput;
 use crate::graph::{EdgeClass, PoseGraph};
-use crate::outliers::pcm::{Pcm, PcmError, Scope};
+use crate::outliers::pcm::{Odometry, Pcm, PcmError, Scope};
 
 /// Default of `[backend] intra_pcm_window`.
 pub const DEFAULT_INTRA_PCM_WINDOW: usize = 64;
@@ -59,6 +59,8 @@ pub struct IntraLoops {
     dirty: bool,
     /// The odometry the last run saw, up to the newest keyframe any candidate joins.
     seen_odometry: Option<OdometryPrint>,
+    /// The graph's odometry chained (brought up to date at each check).
+    odometry: Odometry,
     frozen_kept: usize,
     frozen_rejected: usize,
 }
@@ -91,6 +93,7 @@ impl IntraLoops {
             kept: BTreeSet::new(),
             dirty: false,
             seen_odometry: None,
+            odometry: Odometry::default(),
             frozen_kept: 0,
             frozen_rejected: 0,
         })
@@ -140,22 +143,15 @@ impl IntraLoops {
         if !self.dirty && self.seen_odometry == Some(print) {
             return Ok(out);
         }
-        let mut base = PoseGraph::new();
-        for (&k, p) in graph.keys().iter().zip(graph.poses()) {
-            base.add_pose(k, *p);
-        }
-        for e in graph.edges() {
-            if graph.edge_class(e) == EdgeClass::Odometry {
-                // The same indices: the poses were added in the same order.
-                let _ = base.add_edge(e.i, e.j, e.measured, e.information);
-            }
-        }
+        // Only the keyframes and odometry edges new since the last check are chained: the
+        // cost of a check grows with the window, not with the flight.
+        self.odometry.update(graph)?;
         while self.candidates.len() > self.window {
             let n = (self.candidates.len() - self.window).min(self.window);
             if n > self.decided {
                 // More arrived at once than the window holds (a journal replay): the
                 // oldest are judged together before they freeze.
-                self.kept = self.run(&base, self.window)?;
+                self.kept = self.run(graph, self.window)?;
                 self.decided = self.window;
             }
             for c in self.candidates.drain(..n) {
@@ -173,7 +169,7 @@ impl IntraLoops {
             }
             self.decided -= n;
         }
-        let kept = self.run(&base, self.candidates.len())?;
+        let kept = self.run(graph, self.candidates.len())?;
         out.changed = kept != self.kept || !out.frozen_kept.is_empty();
         self.kept = kept;
         self.decided = self.candidates.len();
@@ -183,19 +179,26 @@ impl IntraLoops {
         Ok(out)
     }
 
-    /// PCM over the anchors and the oldest `n` candidates of the window on `base` (poses
-    /// and odometry); the keys of those candidates it keeps, as received.
-    fn run(&self, base: &PoseGraph<SE3>, n: usize) -> Result<BTreeSet<(u64, u64)>, PcmError> {
-        let mut g = base.clone();
+    /// PCM over the anchors and the oldest `n` candidates of the window, with the odometry
+    /// of `graph` (chained in `self.odometry`); the keys of those candidates it keeps, as
+    /// received. PCM's graph holds only the keyframes the closures join.
+    fn run(&self, graph: &PoseGraph<SE3>, n: usize) -> Result<BTreeSet<(u64, u64)>, PcmError> {
+        let mut g = PoseGraph::new();
         let window = &self.candidates[..n];
         for c in self.anchors.iter().chain(window) {
-            let (Some(i), Some(j)) = (g.index_of(c.key_a), g.index_of(c.key_b)) else {
+            let (Some(a), Some(b)) = (graph.index_of(c.key_a), graph.index_of(c.key_b)) else {
                 continue;
             };
+            let i = g
+                .index_of(c.key_a)
+                .unwrap_or_else(|| g.add_pose(c.key_a, graph.poses()[a]));
+            let j = g
+                .index_of(c.key_b)
+                .unwrap_or_else(|| g.add_pose(c.key_b, graph.poses()[b]));
             let _ = g.add_edge(i, j, c.relative, c.information);
         }
         let mut pcm = self.pcm.clone();
-        let summary = pcm.run(&g)?;
+        let summary = pcm.run_with(&g, &self.odometry)?;
         // PCM orients closures (lower index first); map back to the pairs as received.
         let inliers: HashSet<(u64, u64)> = summary
             .inliers
