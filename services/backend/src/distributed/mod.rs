@@ -57,7 +57,7 @@ mod team;
 
 pub use map::TeamTrajectory;
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::Duration;
 
 use link::{Arrival, Received};
@@ -343,6 +343,10 @@ pub struct AgentStats {
     pub reinitializations: u64,
     /// Inter-robot closures PCM left out of the last solve.
     pub rejected_closures: u64,
+    /// Messages that arrived before the first closure with their sender, held
+    /// ([`PARKED_MAX`]), and of them dropped because the hold was full.
+    pub parked: u64,
+    pub parked_dropped: u64,
 }
 
 /// One robot's share of the distributed pose-graph optimization.
@@ -397,8 +401,23 @@ pub struct Agent {
     estimate_version: u64,
     /// Inter-robot closures (key, key) PCM left out of the last solve.
     rejected: Vec<(u64, u64)>,
+    /// Messages from robots this one shares no closure with yet, oldest first, taken in
+    /// when the first closure with their sender arrives ([`PARKED_MAX`]).
+    parked: VecDeque<(u8, Message)>,
+    /// Presence heard of robots that are not neighbours yet (the link reports a peer
+    /// when it appears, which can be before the first closure with it).
+    heard_present: BTreeMap<u8, bool>,
     stats: AgentStats,
 }
+
+/// At most this many messages wait for the first closure with their sender (all senders
+/// together; the oldest is dropped, counted in [`AgentStats::parked_dropped`]). The two
+/// robots of a closure hear of it apart: the loop-closure message and the back-end's
+/// messages travel as different kinds, so a neighbour's route, graph or estimates can
+/// reach this robot first (seen after a restart: the solver's one route refused, the
+/// robot left in its own frame). A team's back-end sends a few messages per neighbour
+/// and round, so 64 holds several rounds from a handful of robots.
+pub const PARKED_MAX: usize = 64;
 
 impl Agent {
     /// An agent for robot `robot` (0 = 'a'), identified on the wire as `id`; `epoch` is
@@ -440,6 +459,8 @@ impl Agent {
             team_map: BTreeMap::new(),
             estimate_version: 0,
             rejected: Vec::new(),
+            parked: VecDeque::new(),
+            heard_present: BTreeMap::new(),
             stats: AgentStats::default(),
         }
     }
@@ -602,20 +623,55 @@ impl Agent {
             kappa,
             tau,
         });
-        self.neighbors.entry(neighbor).or_default();
+        let new_neighbor = !self.neighbors.contains_key(&neighbor);
+        let n = self.neighbors.entry(neighbor).or_default();
+        if new_neighbor {
+            n.present = self.heard_present.remove(&neighbor).unwrap_or(false);
+        }
         self.stage_converged = false;
         self.own_graph_dirty = true;
         self.team.interior_dirty = true;
         // A new neighbour may have a lower id than our anchor.
         self.update_anchor();
+        if new_neighbor {
+            self.take_parked(neighbor);
+        }
         Ok(())
+    }
+
+    /// Takes in, in arrival order, the messages `neighbor` sent before its first closure
+    /// with this robot arrived. One refused now is counted as any refusal; the caller
+    /// has long acknowledged it, so it is logged here.
+    fn take_parked(&mut self, neighbor: u8) {
+        let (theirs, others): (VecDeque<_>, VecDeque<_>) = std::mem::take(&mut self.parked)
+            .into_iter()
+            .partition(|(from, _)| *from == neighbor);
+        self.parked = others;
+        for (_, m) in theirs {
+            if let Err(e) = self.receive(neighbor, &m) {
+                tracing::warn!("distributed back-end: a held message refused: {e}");
+            }
+        }
+    }
+
+    /// Holds a message of a robot this one shares no closure with yet.
+    fn park(&mut self, neighbor: u8, message: &Message) {
+        if self.parked.len() >= PARKED_MAX {
+            self.parked.pop_front();
+            self.stats.parked_dropped += 1;
+        }
+        self.parked.push_back((neighbor, message.clone()));
+        self.stats.parked += 1;
     }
 
     /// Discovery: a neighbour came into range (true) or left it (false). A neighbour out of
     /// range is not waited for; its last estimates stay in use.
     pub fn set_present(&mut self, neighbor: u8, present: bool) {
-        if let Some(n) = self.neighbors.get_mut(&neighbor) {
-            n.present = present;
+        match self.neighbors.get_mut(&neighbor) {
+            Some(n) => n.present = present,
+            None => {
+                self.heard_present.insert(neighbor, present);
+            }
         }
     }
 
@@ -1283,6 +1339,25 @@ impl Agent {
     /// is refused with an error and changes nothing; stale or out-of-order messages are
     /// ignored (`Ok(false)`).
     pub fn receive(&mut self, neighbor: u8, message: &Message) -> Result<bool, DpgoError> {
+        // A back-end message of a robot this one shares no closure with yet: the closure
+        // may still be on its way (`PARKED_MAX`). Other kinds are refused below.
+        if !self.neighbors.contains_key(&neighbor) && neighbor != self.robot {
+            let backend_kind = match &message.body {
+                Body::Ack(a) => matches!(
+                    a.kind,
+                    Kind::PoseEstimates | Kind::SeparatorGraph | Kind::Route | Kind::TeamMap
+                ),
+                Body::PoseEstimates(_)
+                | Body::SeparatorGraph(_)
+                | Body::Route(_)
+                | Body::TeamMap(_) => true,
+                _ => false,
+            };
+            if backend_kind {
+                self.park(neighbor, message);
+                return Ok(false);
+            }
+        }
         match &message.body {
             Body::TeamMap(m) => {
                 if !self.neighbors.contains_key(&neighbor) {

@@ -124,6 +124,10 @@ pub struct TeamStatus {
     pub rejected_closures: Vec<[String; 2]>,
     pub steps: u64,
     pub updates: u64,
+    /// Back-end messages that arrived before the first closure with their sender, held
+    /// until it came (`distributed::PARKED_MAX`), and of them dropped with the hold full.
+    pub held_before_closure: u64,
+    pub held_dropped: u64,
     pub relay: BridgeStats,
     /// `relay.refused` per peer robot (key letter) and message kind.
     pub refused_from: BTreeMap<String, BTreeMap<String, u64>>,
@@ -187,6 +191,8 @@ impl Outputs {
                     .collect(),
                 steps: stats.steps,
                 updates: stats.updates,
+                held_before_closure: stats.parked,
+                held_dropped: stats.parked_dropped,
                 relay: b.stats(),
                 refused_from: b
                     .refused_from()
