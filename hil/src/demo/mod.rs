@@ -228,6 +228,16 @@ fn log_sessions(log: &mut RunLog, t_s: f64, before: &[RobotSnapshot], now: &[Rob
     }
 }
 
+/// Every robot's team link has every other robot present right now.
+fn all_pairs_present(robots: &[RobotSnapshot]) -> bool {
+    robots.iter().all(|x| {
+        robots
+            .iter()
+            .filter(|y| y.name != x.name)
+            .all(|y| x.present.contains(&y.name.to_string()))
+    })
+}
+
 /// Every robot's back-end reports one and the same anchor: the team estimate is one frame.
 fn in_one_frame(robots: &[RobotSnapshot]) -> bool {
     robots
@@ -546,7 +556,13 @@ pub fn run(
             }
         }
         let all_met = met_at_base.len() >= n * (n - 1) / 2;
-        let converged = all_met && snap.robots.iter().all(|r| r.converged);
+        // A team still split waits until every pair is in range now, not only once: a
+        // meeting at base that the lossy radio cut after a second leaves both back-ends
+        // `converged` with nobody present to wait for (a chaos run of 2026-12-05: b in
+        // its own frame, its link to a down for the rest of the settle).
+        let converged = all_met
+            && (in_one_frame(&snap.robots) || all_pairs_present(&snap.robots))
+            && snap.robots.iter().all(|r| r.converged);
         let delivered = estimates_delivered(&snap.robots);
         if converged && !delivered && !waited_for_delivery {
             // Said once per run: how often the back-ends' own word would have ended the
@@ -677,6 +693,20 @@ mod tests {
         // Estimates handed down for a robot the demo does not run: never delivered.
         a.rounds_handed_down.insert("c".into(), 7);
         assert!(!estimates_delivered(&[a, b]));
+    }
+
+    #[test]
+    fn every_pair_is_present_only_when_each_robot_sees_every_other() {
+        let mut a = robot('a', "a");
+        let mut b = robot('b', "b");
+        assert!(!all_pairs_present(&[a.clone(), b.clone()]));
+        a.present = vec!["b".into()];
+        // a sees b, b does not see a yet (one side of a reconnection).
+        assert!(!all_pairs_present(&[a.clone(), b.clone()]));
+        b.present = vec!["a".into()];
+        assert!(all_pairs_present(&[a.clone(), b.clone()]));
+        let c = robot('c', "c");
+        assert!(!all_pairs_present(&[a, b, c]));
     }
 
     #[test]
