@@ -1359,24 +1359,11 @@ impl Agent {
             }
         }
         match &message.body {
+            // A neighbour's (any other robot's was held above).
             Body::TeamMap(m) => {
-                if !self.neighbors.contains_key(&neighbor) {
-                    self.stats.refused += 1;
-                    return Err(DpgoError::BadMessage {
-                        from: neighbor,
-                        reason: "no closure with this robot".into(),
-                    });
-                }
                 return self.map_receive(neighbor, &message.header, m);
             }
             Body::Ack(a) if a.kind == Kind::TeamMap => {
-                if !self.neighbors.contains_key(&neighbor) {
-                    self.stats.refused += 1;
-                    return Err(DpgoError::BadMessage {
-                        from: neighbor,
-                        reason: "no closure with this robot".into(),
-                    });
-                }
                 return self.map_ack(neighbor, a);
             }
             _ if self.options.method == Method::Condensed => {
