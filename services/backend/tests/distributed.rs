@@ -296,6 +296,21 @@ fn estimates(a: &Agent) -> Vec<(u64, [f64; 7])> {
         .collect()
 }
 
+/// The same keys, every pose value within `tolerance` of the one before.
+fn assert_same_estimates(before: &[(u64, [f64; 7])], after: &[(u64, [f64; 7])], tolerance: f64) {
+    assert_eq!(before.len(), after.len());
+    for ((k0, x0), (k1, x1)) in before.iter().zip(after) {
+        assert_eq!(k0, k1);
+        for (u, v) in x0.iter().zip(x1) {
+            assert!(
+                (u - v).abs() < tolerance,
+                "{} moved: {x0:?} -> {x1:?}",
+                key::label(*k0)
+            );
+        }
+    }
+}
+
 fn from_b(sequence: u64, key: u64, pose: SE3) -> Message {
     Message::new(
         Header {
@@ -353,17 +368,7 @@ fn malformed_stale_and_out_of_order_messages_change_nothing() {
     );
     assert!(a.receive(1, &hello).is_err());
     tick(&mut a);
-    let after = estimates(&a);
-    for ((k0, x0), (k1, x1)) in before.iter().zip(&after) {
-        assert_eq!(k0, k1);
-        for (u, v) in x0.iter().zip(x1) {
-            assert!(
-                (u - v).abs() < 1e-6,
-                "{} moved: {x0:?} -> {x1:?}",
-                key::label(*k0)
-            );
-        }
-    }
+    assert_same_estimates(&before, &estimates(&a), 1e-6);
     assert!(
         a.stats().refused >= 3 && a.stats().ignored_stale >= 1,
         "{:?}",
@@ -1064,14 +1069,5 @@ fn messages_before_the_first_closure_wait_for_it() {
         "b not in a's frame: {:?}",
         b.stats()
     );
-    for ((k0, x0), (k1, x1)) in reference.iter().zip(&estimates(&b)) {
-        assert_eq!(k0, k1);
-        for (u, v) in x0.iter().zip(x1) {
-            assert!(
-                (u - v).abs() < 1e-4,
-                "{}: {x0:?} vs {x1:?}",
-                key::label(*k0)
-            );
-        }
-    }
+    assert_same_estimates(&reference, &estimates(&b), 1e-4);
 }
