@@ -40,16 +40,25 @@ const CHAOS_KILLS: [(&str, f64); 2] = [("a", 25.0), ("b", 40.0)];
 /// BENCHMARKS "The chaos run, repeated" for the measured runs it comes from.
 const CHAOS_ATE_BOUND_M: f64 = 0.5;
 /// Most seconds at base (the demo stops waiting once the team has converged and is
-/// quiet). After the chaos run the two restarted robots may need the meeting at base to
-/// merge again (measured: 11.5 s and 39.7 s; in two other runs they did not merge, one
-/// of them within 40 s, one within 90 s).
+/// quiet). A robot restarted after a kill may need the meeting at base to merge again.
+/// On Zenoh's multicast scouting alone, a team-link session under 30 % loss took 12-48 s
+/// to form (the kill run that failed in CI and here on 2026-12-05: b in range again for
+/// 17 s in flight with no session, the session 29.5 s into the base, too late for a 40 s
+/// settle); with the roster's addresses dialled too (the demo's `connect`), 1.4-2.8 s,
+/// and both fault runs settled 6-8 s into the base. The faulty runs keep 90 s for the
+/// tail.
 const SETTLE_S: &str = "40";
-const CHAOS_SETTLE_S: &str = "90";
+const FAULT_SETTLE_S: &str = "90";
 const MIN_TEAM_GAIN: f64 = 1.0;
 /// Random loss asked for in the second run, and how far the measured share may be from
 /// it (thousands of packets: the binomial spread is ~1 %).
 const DROP: f64 = 0.3;
 const DROP_TOLERANCE: f64 = 0.05;
+
+/// One demo at a time: each is a team of processes sized for the machine (its CPU
+/// figures are checked against the cores); two at once on 2 cores (the chaos run beside
+/// the kill run, in CI on 2026-12-05) add a load no robot of either run was sized for.
+static ONE_DEMO_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 /// A test's run folders: removed when the test passes, kept (and named on stderr) when it
 /// fails, so that a failed run's logs, status files and estimates can be looked at.
@@ -259,6 +268,7 @@ fn honest_cpu(s: &Value) {
 
 #[test]
 fn two_robots_build_one_map_and_a_killed_robot_rejoins_on_a_lossy_radio() {
+    let _one = ONE_DEMO_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let dir = RunDir::new();
     let out = dir.path().join("run");
     let s = demo(&out, SETTLE_S, &["--duration-s", DURATION_S]);
@@ -281,13 +291,16 @@ fn two_robots_build_one_map_and_a_killed_robot_rejoins_on_a_lossy_radio() {
     assert!(sc["meetings_in_flight"].as_u64().unwrap() >= 1, "{sc}");
     ledgers_match_published(&out, &["a", "b"]);
     // Secure by default: the robots met over mutual TLS with the access control, on the
-    // team's certificates the demo issued (the closures above went over it).
+    // team's certificates the demo issued (the closures above went over it); each robot
+    // dials the others' addresses as well as scouting for them (a lossy radio's meetings).
     assert_eq!(s["security"]["tls"], true, "{}", s["security"]);
     assert!(out.join("certs/ca.pem").is_file());
     for r in ["a", "b"] {
         let toml = std::fs::read_to_string(out.join(r).join("robot.toml")).unwrap();
         assert!(
-            toml.contains("[team.tls]") && toml.contains("listen = [\"tls/"),
+            toml.contains("[team.tls]")
+                && toml.contains("listen = [\"tls/")
+                && toml.contains("connect = [\"tls/"),
             "robot {r}: {toml}"
         );
     }
@@ -307,7 +320,7 @@ fn two_robots_build_one_map_and_a_killed_robot_rejoins_on_a_lossy_radio() {
     let drop = DROP.to_string();
     let s = demo(
         &again,
-        SETTLE_S,
+        FAULT_SETTLE_S,
         &[
             "--world",
             world.to_str().unwrap(),
@@ -330,6 +343,7 @@ fn two_robots_build_one_map_and_a_killed_robot_rejoins_on_a_lossy_radio() {
 /// as the team's meeting. In CI since 2026-12-05, after 4 of 4 runs with every mend.
 #[test]
 fn two_robots_keep_one_map_through_a_chaos_run() {
+    let _one = ONE_DEMO_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let dir = RunDir::new();
     let out = dir.path().join("chaos");
     let drop = DROP.to_string();
@@ -339,7 +353,7 @@ fn two_robots_keep_one_map_through_a_chaos_run() {
         .collect();
     let s = demo(
         &out,
-        CHAOS_SETTLE_S,
+        FAULT_SETTLE_S,
         &[
             "--duration-s",
             DURATION_S,
