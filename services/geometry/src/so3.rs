@@ -65,9 +65,23 @@ impl SO3 {
         Ok(Self(UnitQuaternion::from_quaternion(q)))
     }
 
-    /// The closest rotation to a 3×3 matrix (SVD projection, determinant +1).
+    /// The closest rotation to a 3×3 matrix (SVD projection, determinant +1). Not
+    /// nalgebra's `UnitQuaternion::from_matrix`: it iterates from the identity and returns
+    /// the identity for an exact half turn.
     pub fn from_matrix(m: &Matrix3<f64>) -> Self {
-        Self(UnitQuaternion::from_matrix(m))
+        let svd = m.svd(true, true);
+        let (u, v_t) = (
+            svd.u.unwrap_or_else(Matrix3::identity),
+            svd.v_t.unwrap_or_else(Matrix3::identity),
+        );
+        let mut d = Matrix3::identity();
+        if (u * v_t).determinant() < 0.0 {
+            d[(2, 2)] = -1.0;
+        }
+        let r = nalgebra::Rotation3::from_matrix_unchecked(u * d * v_t);
+        Self(UnitQuaternion::from_quaternion(
+            *UnitQuaternion::from_rotation_matrix(&r).quaternion(),
+        ))
     }
 
     pub fn quaternion(&self) -> UnitQuaternion<f64> {
@@ -176,5 +190,24 @@ fn inv_coeff(theta: f64) -> f64 {
         1.0 / 12.0 + theta * theta / 720.0
     } else {
         1.0 / (theta * theta) - (1.0 + theta.cos()) / (2.0 * theta * theta.sin())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_closest_rotation_of_a_half_turn_is_the_half_turn() {
+        let half_turn = Matrix3::new(-1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0);
+        let r = SO3::from_matrix(&half_turn);
+        assert!((r.matrix() - half_turn).norm() < 1e-12, "{}", r.matrix());
+        // A scaled, slightly sheared rotation projects back onto it.
+        let q = SO3::exp(&Vector3::new(0.3, -1.2, 2.0));
+        let mut m = q.matrix() * 2.0;
+        m[(0, 1)] += 1e-3;
+        let back = SO3::from_matrix(&m);
+        assert!((back.compose(&q.inverse())).log().norm() < 1e-3);
+        assert!((back.quaternion().into_inner().norm() - 1.0).abs() < 1e-12);
     }
 }

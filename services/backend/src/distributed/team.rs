@@ -1754,8 +1754,14 @@ fn align(pairs: &[(SE3, SE3)]) -> Option<SE3> {
         m += old.rotation.to_rotation_matrix().matrix()
             * new.rotation.to_rotation_matrix().matrix().transpose();
     }
+    // `r` is a rotation already: read its quaternion directly. nalgebra's `from_matrix`
+    // finds the rotation nearest a matrix iteratively from the identity and stops at a
+    // half turn, returning the identity for it (a robot flying its route back the other
+    // way is such a frame change).
     let r = crate::init::project_so3(&m);
-    let rotation = nalgebra::UnitQuaternion::from_matrix(&r);
+    let rotation = nalgebra::UnitQuaternion::from_rotation_matrix(
+        &nalgebra::Rotation3::from_matrix_unchecked(r),
+    );
     let translation = c_old - rotation * c_new;
     Some(SE3::from_parts(translation.into(), rotation))
 }
@@ -1803,6 +1809,48 @@ mod tests {
             err(all),
             err(single)
         );
+    }
+
+    #[test]
+    fn a_half_turn_between_frames_is_aligned() {
+        for axis in [
+            nalgebra::Vector3::x_axis(),
+            nalgebra::Vector3::y_axis(),
+            nalgebra::Vector3::z_axis(),
+        ] {
+            let t = SE3::from_parts(
+                nalgebra::Translation3::new(5.0, -2.0, 1.0),
+                // w = 0: exactly a half turn, every matrix entry exact.
+                nalgebra::UnitQuaternion::new_normalize(nalgebra::Quaternion::new(
+                    0.0, axis.x, axis.y, axis.z,
+                )),
+            );
+            let pairs: Vec<(SE3, SE3)> = (0..3)
+                .map(|i| {
+                    let f = i as f64;
+                    let x = SE3::exp(&doorslam_geometry::Tangent::from_row_slice(&[
+                        0.0,
+                        0.0,
+                        0.3 * f,
+                        2.0 * f,
+                        f,
+                        0.5,
+                    ]));
+                    (t * x, x)
+                })
+                .collect();
+            // Over several separators, and over one at the origin (the rotation matrix
+            // then exactly a half turn).
+            let one = [(t, SE3::identity())];
+            for pairs in [&pairs[..], &one[..]] {
+                let got = align(pairs).unwrap();
+                assert!(
+                    (got.inverse() * t).log().norm() < 1e-9,
+                    "about {axis:?}: {got} vs {t}"
+                );
+                assert!((got.rotation.into_inner().norm() - 1.0).abs() < 1e-12);
+            }
+        }
     }
 
     fn edge(a: u64, b: u64, x: f64) -> CondensedEdge {
