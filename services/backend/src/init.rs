@@ -164,19 +164,8 @@ fn solve_translations(
         .collect())
 }
 
-/// Nearest rotation (Frobenius) to a 3×3 matrix.
-pub(crate) fn project_so3(m: &Matrix3<f64>) -> Matrix3<f64> {
-    let svd = m.svd(true, true);
-    let (u, vt) = (
-        svd.u.unwrap_or_else(Matrix3::identity),
-        svd.v_t.unwrap_or_else(Matrix3::identity),
-    );
-    let mut d = Matrix3::identity();
-    if (u * vt).determinant() < 0.0 {
-        d[(2, 2)] = -1.0;
-    }
-    u * d * vt
-}
+// Nearest rotation (Frobenius) to a 3×3 matrix: the geometry crate's, one definition.
+pub(crate) use doorslam_geometry::project_so3;
 
 impl Chordal for Isometry3<f64> {
     fn chordal(graph: &mut PoseGraph<Self>, anchor: usize) -> Result<(), SolveError> {

@@ -27,4 +27,4 @@ pub use lie::{
     inverse_action_jacobian, reverse_measurement, LieGroup, Tangent, TangentMatrix, SE2, SE3,
 };
 pub use pose::{pose_from_array, pose_to_array, PoseError};
-pub use so3::{hat, vee, SO3, UNIT_QUATERNION_TOLERANCE};
+pub use so3::{hat, project_so3, vee, SO3, UNIT_QUATERNION_TOLERANCE};

@@ -69,16 +69,7 @@ impl SO3 {
     /// nalgebra's `UnitQuaternion::from_matrix`: it iterates from the identity and returns
     /// the identity for an exact half turn.
     pub fn from_matrix(m: &Matrix3<f64>) -> Self {
-        let svd = m.svd(true, true);
-        let (u, v_t) = (
-            svd.u.unwrap_or_else(Matrix3::identity),
-            svd.v_t.unwrap_or_else(Matrix3::identity),
-        );
-        let mut d = Matrix3::identity();
-        if (u * v_t).determinant() < 0.0 {
-            d[(2, 2)] = -1.0;
-        }
-        let r = nalgebra::Rotation3::from_matrix_unchecked(u * d * v_t);
+        let r = nalgebra::Rotation3::from_matrix_unchecked(project_so3(m));
         Self(UnitQuaternion::from_quaternion(
             *UnitQuaternion::from_rotation_matrix(&r).quaternion(),
         ))
@@ -191,6 +182,20 @@ fn inv_coeff(theta: f64) -> f64 {
     } else {
         1.0 / (theta * theta) - (1.0 + theta.cos()) / (2.0 * theta * theta.sin())
     }
+}
+
+/// Nearest rotation (Frobenius) to a 3×3 matrix: `U diag(1, 1, det) Vᵀ` of its SVD.
+pub fn project_so3(m: &Matrix3<f64>) -> Matrix3<f64> {
+    let svd = m.svd(true, true);
+    let (u, vt) = (
+        svd.u.unwrap_or_else(Matrix3::identity),
+        svd.v_t.unwrap_or_else(Matrix3::identity),
+    );
+    let mut d = Matrix3::identity();
+    if (u * vt).determinant() < 0.0 {
+        d[(2, 2)] = -1.0;
+    }
+    u * d * vt
 }
 
 #[cfg(test)]
