@@ -610,23 +610,19 @@ listen = ["{listen}"]
         .filter(|(i, _)| *i != r)
         .map(|(_, a)| format!("{a:?}"))
         .collect();
-    if netns {
-        // Peers found on the shared radio LAN, and the roster's addresses dialled too:
-        // Zenoh's multicast scouting asks once every 8 s after its first few seconds, so
-        // under 30 % loss (a scout and its answer both through: one in two) a robot back
-        // in range met the team 12-48 s later; a listed peer is dialled again every 1-4 s.
-        let _ = writeln!(
-            t,
-            "connect = [{}]\nmulticast_scouting = true",
-            others.join(", ")
-        );
-    } else {
-        let _ = writeln!(
-            t,
-            "# loopback (not root): no multicast between test robots, peers listed\nconnect = [{}]\nmulticast_scouting = false",
-            others.join(", ")
-        );
+    // In network namespaces peers are found on the shared radio LAN, and the roster's
+    // addresses are dialled too: Zenoh's multicast scouting asks once every 8 s after its
+    // first few seconds, so under 30 % loss (a scout and its answer both through: one in
+    // two) a robot back in range met the team 12-48 s later; a listed peer is dialled
+    // again every 1-4 s.
+    if !netns {
+        t.push_str("# loopback (not root): no multicast between test robots, peers listed\n");
     }
+    let _ = writeln!(
+        t,
+        "connect = [{}]\nmulticast_scouting = {netns}",
+        others.join(", ")
+    );
     let _ = write!(
         t,
         r#"lease_ms = 3000

@@ -22,7 +22,7 @@ use crate::graph::{EdgeClass, PoseGraph};
 use crate::linear::SparseCholesky;
 use crate::solver::{check_connected, var_of, SolveError};
 use crate::sparsity::BlockPattern;
-use doorslam_geometry::{LieGroup, TangentMatrix};
+use doorslam_geometry::{project_so3, LieGroup, TangentMatrix};
 
 /// Sets every pose not marked `known` by composing edges breadth-first from `start`,
 /// odometry edges first (they are the most accurate chain). Returns the poses reached.
@@ -163,9 +163,6 @@ fn solve_translations(
         })
         .collect())
 }
-
-// Nearest rotation (Frobenius) to a 3×3 matrix: the geometry crate's, one definition.
-pub(crate) use doorslam_geometry::project_so3;
 
 impl Chordal for Isometry3<f64> {
     fn chordal(graph: &mut PoseGraph<Self>, anchor: usize) -> Result<(), SolveError> {

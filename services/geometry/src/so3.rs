@@ -70,9 +70,9 @@ impl SO3 {
     /// the identity for an exact half turn.
     pub fn from_matrix(m: &Matrix3<f64>) -> Self {
         let r = nalgebra::Rotation3::from_matrix_unchecked(project_so3(m));
-        Self(UnitQuaternion::from_quaternion(
-            *UnitQuaternion::from_rotation_matrix(&r).quaternion(),
-        ))
+        let mut q = UnitQuaternion::from_rotation_matrix(&r);
+        q.renormalize();
+        Self(q)
     }
 
     pub fn quaternion(&self) -> UnitQuaternion<f64> {

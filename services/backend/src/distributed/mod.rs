@@ -62,13 +62,13 @@ use std::time::Duration;
 
 use link::{Arrival, Received};
 
-use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Translation3, Vector3};
 
 use crate::graph::EdgeError;
-use crate::init::{isotropic_weights, project_so3};
+use crate::init::isotropic_weights;
 use crate::solver::{SolveError, SolverOptions};
 use doorslam_geometry::information::{check_information, InformationCheck, InformationError};
-use doorslam_geometry::{key, LieGroup, TangentMatrix, SE3};
+use doorslam_geometry::{key, LieGroup, TangentMatrix, SE3, SO3};
 use doorslam_ipc::wire::{
     Ack, Body, CompactPose, Estimate, Header, Kind, Message, PoseEstimate, PoseEstimates,
     QuantizeError, RelaxedRotation, RobotId, Stage, ESTIMATES_CONVERGED, MAX_POSE_ESTIMATES,
@@ -1038,10 +1038,7 @@ impl Agent {
         for (p, x) in solved {
             self.relaxed[p] = x + (x - self.solution_relaxed[p]) * beta;
             self.solution_relaxed[p] = x;
-            let q = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(
-                project_so3(&self.relaxed[p]),
-            ));
-            self.poses[p].rotation = q;
+            self.poses[p].rotation = SO3::from_matrix(&self.relaxed[p]).quaternion();
         }
         self.in_frame = active;
         self.last_change = change;

@@ -1774,14 +1774,10 @@ fn align(pairs: &[(SE3, SE3)]) -> Option<SE3> {
         m += old.rotation.to_rotation_matrix().matrix()
             * new.rotation.to_rotation_matrix().matrix().transpose();
     }
-    // `r` is a rotation already: read its quaternion directly. nalgebra's `from_matrix`
-    // finds the rotation nearest a matrix iteratively from the identity and stops at a
-    // half turn, returning the identity for it (a robot flying its route back the other
-    // way is such a frame change).
-    let r = crate::init::project_so3(&m);
-    let rotation = nalgebra::UnitQuaternion::from_rotation_matrix(
-        &nalgebra::Rotation3::from_matrix_unchecked(r),
-    );
+    // By SVD (`SO3::from_matrix`), not nalgebra's `UnitQuaternion::from_matrix`, which
+    // iterates from the identity and returns the identity for a half turn (a robot flying
+    // its route back the other way is such a frame change).
+    let rotation = doorslam_geometry::SO3::from_matrix(&m).quaternion();
     let translation = c_old - rotation * c_new;
     Some(SE3::from_parts(translation.into(), rotation))
 }
