@@ -199,11 +199,17 @@ fn ledgers_match_published(out: &Path, robots: &[&str]) {
             .filter(|t| t.direction == doorslam_team::ledger::Direction::Sent)
             .map(|t| t.counts.payload_bytes)
             .sum();
+        // Both counts run over every start of the link (a killed robot's, or a team
+        // service `up` restarted): the link's own count continues from the ledger's file.
+        let failures = doorslam_hil::demo::report::service_failures(&out.join(r).join("robot.log"));
         assert_eq!(
             status["published_bytes"].as_u64().unwrap(),
             sent,
-            "robot {r}: the ledger must count exactly what was published"
+            "robot {r}: the ledger must count exactly what was published (link starts {}, failures {failures:?})",
+            status["link_starts"]
         );
+        assert_eq!(ledger.link.published_bytes, sent, "robot {r}");
+        assert!(ledger.link.starts >= 1, "robot {r}");
     }
 }
 
@@ -290,6 +296,16 @@ fn two_robots_build_one_map_and_a_killed_robot_rejoins_on_a_lossy_radio() {
     }
     assert!(sc["meetings_in_flight"].as_u64().unwrap() >= 1, "{sc}");
     ledgers_match_published(&out, &["a", "b"]);
+    // A healthy run: no service failed or panicked, every team link started once.
+    for r in ["a", "b"] {
+        let x = &s["per_robot"][r];
+        assert_eq!(
+            x["service_failures"],
+            serde_json::json!([]),
+            "robot {r}: {x}"
+        );
+        assert_eq!(x["team_link_starts"], 1, "robot {r}: {x}");
+    }
     // Secure by default: the robots met over mutual TLS with the access control, on the
     // team's certificates the demo issued (the closures above went over it); each robot
     // dials the others' addresses as well as scouting for them (a lossy radio's meetings).
@@ -331,7 +347,7 @@ fn two_robots_build_one_map_and_a_killed_robot_rejoins_on_a_lossy_radio() {
         ],
     );
     faults_survived(&again, &s, &[("b", 25.0)], KILL_ATE_BOUND_M);
-    ledgers_match_published(&again, &["a"]);
+    ledgers_match_published(&again, &["a", "b"]);
 }
 
 /// The chaos run of issue #33: both robots killed mid-flight, the team's solver (a, the
@@ -366,6 +382,7 @@ fn two_robots_keep_one_map_through_a_chaos_run() {
         ],
     );
     faults_survived(&out, &s, &CHAOS_KILLS, CHAOS_ATE_BOUND_M);
+    ledgers_match_published(&out, &["a", "b"]);
 }
 
 /// A faulty run's summary and report against the `kills` asked (robot, flight seconds):
@@ -377,8 +394,15 @@ fn faults_survived(out: &Path, s: &Value, kills_asked: &[(&str, f64)], bound: f6
     for r in ["a", "b"] {
         let x = &s["per_robot"][r];
         println!(
-            "{r}: team frame {} (ATE {} m; own alignment {} m), anchor {}, converged {}",
-            x["in_team_frame"], x["ate_team_frame_m"], x["ate_team_m"], x["anchor"], x["converged"]
+            "{r}: team frame {} (ATE {} m; own alignment {} m), anchor {}, converged {}, starts {}, team link starts {}, service failures {}",
+            x["in_team_frame"],
+            x["ate_team_frame_m"],
+            x["ate_team_m"],
+            x["anchor"],
+            x["converged"],
+            x["starts"],
+            x["team_link_starts"],
+            x["service_failures"]
         );
     }
     println!(

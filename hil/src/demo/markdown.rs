@@ -242,6 +242,12 @@ pub fn report(s: &Summary, bw_table: &str) -> String {
             }
         );
     }
+    // Failures nobody asked for: a service that exited or panicked and was restarted.
+    for (r, x) in &s.per_robot {
+        for line in &x.service_failures {
+            let _ = writeln!(t, "- **robot {r}, not asked for**: `{line}`");
+        }
+    }
     let _ = writeln!(t);
 
     let _ = writeln!(t, "## Real time and CPU\n");

@@ -73,11 +73,32 @@ pub struct RobotSummary {
     pub bytes_sent: u64,
     /// Times the robot's processes were started.
     pub starts: u32,
+    /// Times its team link was started (`status.json`): above `starts` when the team
+    /// service failed and `up` restarted it.
+    pub team_link_starts: u64,
+    /// Every service failure `up` logged (`robot.log`: the service, its exit status), and
+    /// every panic message: none in a healthy run, a killed robot's included.
+    pub service_failures: Vec<String>,
     /// CPU seconds of all its processes (see `cpu`).
     pub cpu_s: f64,
     /// Its flight from ground truth: horizontal distance (m) and mean speed (m/s).
     pub distance_m: f64,
     pub speed_mps: f64,
+}
+
+/// The lines of a robot's log that say a service failed (`up`'s `[up] <service> failed
+/// (<status>)...`) or panicked, in order; none when the log cannot be read.
+pub fn service_failures(log: &Path) -> Vec<String> {
+    std::fs::read_to_string(log)
+        .map(|text| {
+            text.lines()
+                .filter(|l| {
+                    (l.starts_with("[up] ") && l.contains(" failed (")) || l.contains("panicked at")
+                })
+                .map(str::to_string)
+                .collect()
+        })
+        .unwrap_or_default()
 }
 
 /// One inter-robot closure.
@@ -460,6 +481,12 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
                     .unwrap_or(false),
                 bytes_sent: super::robot::ledger_bytes_sent(&dir(r).join("ledger.json")),
                 starts: log.starts.get(r).copied().unwrap_or(0),
+                team_link_starts: std::fs::read_to_string(dir(r).join("status.json"))
+                    .ok()
+                    .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+                    .and_then(|s| s.get("link_starts").and_then(|v| v.as_u64()))
+                    .unwrap_or(0),
+                service_failures: service_failures(&dir(r).join("robot.log")),
                 cpu_s: log.cpu.robots_s.get(r).copied().unwrap_or(0.0),
                 distance_m: truth[r].as_ref().map_or(0.0, horizontal_length),
                 speed_mps: truth[r].as_ref().map_or(0.0, |t| {
@@ -790,5 +817,35 @@ fn scenario(world: &World, truth: &[Option<Trajectory>]) -> Scenario {
             .iter()
             .filter(|e| e.kind == crate::flights::RangeEventKind::Enter && e.time_s > 0.0)
             .count(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `up`'s failure lines and panics are picked out of a robot's log, starts and stops
+    /// are not; a missing log has none.
+    #[test]
+    fn service_failures_are_read_from_the_robots_log() {
+        let dir = tempfile::tempdir().unwrap();
+        let log = dir.path().join("robot.log");
+        std::fs::write(
+            &log,
+            "[up] started team (pid 7)\n\
+             [team] INFO team: link open\n\
+             [team] thread 'main' panicked at services/team/src/node.rs:1:1:\n\
+             [up] team failed (exit status: 101): restarting in 1s\n\
+             [up] team stopped (exit status: 0)\n",
+        )
+        .unwrap();
+        assert_eq!(
+            service_failures(&log),
+            vec![
+                "[team] thread 'main' panicked at services/team/src/node.rs:1:1:".to_string(),
+                "[up] team failed (exit status: 101): restarting in 1s".to_string(),
+            ]
+        );
+        assert!(service_failures(&dir.path().join("absent.log")).is_empty());
     }
 }

@@ -669,6 +669,17 @@ impl BackendExchange for BackendRelay {
         let bytes = Message::new(header.clone(), body)
             .encode()
             .map_err(|e| BackendRefusal(format!("does not re-encode: {e}")))?;
+        // The relay to the back-end carries at most an envelope. A peer's back-end sends
+        // through the same envelope, so only a hostile or broken peer goes past it; writing
+        // it would fail the relay, and the supervisor would restart this service for every
+        // resend of it (a robot knocked off the team by one message).
+        if bytes.len() > doorslam_ipc::MAX_ENVELOPE_BYTES {
+            return Err(BackendRefusal(format!(
+                "{} bytes, more than the back-end relay's envelope of {}",
+                bytes.len(),
+                doorslam_ipc::MAX_ENVELOPE_BYTES
+            )));
+        }
         s.stats.messages_to_backend += 1;
         *s.stats
             .backend_messages_by_peer
@@ -1163,6 +1174,48 @@ mod tests {
             .verify(&peer, &unknown, &packet)
             .is_none());
         assert_eq!(sa.stats().rejected["unknown_keyframe"], 1);
+    }
+
+    /// A message the relay's envelope cannot carry (only a hostile or broken peer sends
+    /// one) is refused by name, not handed on to fail the relay.
+    #[test]
+    fn the_relay_refuses_a_message_larger_than_its_envelope() {
+        let s = Shared::new(0, calib(), MatchSettings::default());
+        let mut relay = BackendRelay(s.clone());
+        let peer = RobotId::new("bravo").unwrap();
+        relay.presence(&peer, 1, 4, true);
+        let header = Header {
+            sender: peer.clone(),
+            epoch: 4,
+            sequence: 9,
+        };
+        let batch = |n: u64| {
+            Body::Descriptors(Descriptors {
+                robot: 1,
+                keyframes: 0..n,
+                descriptors: (0..n)
+                    .map(|i| Descriptor {
+                        key: key::symbol(1, i).unwrap(),
+                        scale: 0.01,
+                        values: [3; DESCRIPTOR_DIM],
+                    })
+                    .collect(),
+            })
+        };
+        let big = Message::new(header.clone(), batch(4096)).encode().unwrap();
+        assert!(
+            big.len() > doorslam_ipc::MAX_ENVELOPE_BYTES
+                && big.len() <= doorslam_ipc::wire::MAX_MESSAGE_BYTES,
+            "{} bytes",
+            big.len()
+        );
+        s.take_for_backend();
+        let refused = relay.receive(&peer, &header, batch(4096)).unwrap_err();
+        assert!(refused.0.contains("envelope"), "{refused}");
+        assert!(s.take_for_backend().0.is_empty());
+        // One that fits goes on.
+        relay.receive(&peer, &header, batch(16)).unwrap();
+        assert_eq!(s.take_for_backend().0.len(), 1);
     }
 
     #[test]

@@ -120,6 +120,22 @@ pub struct LedgerFile {
     pub traffic: Vec<TrafficEntry>,
     pub dropped: Vec<DropEntry>,
     pub rendezvous: Vec<RendezvousEntry>,
+    /// The link's own count of what it handed to Zenoh, over every start of the link in
+    /// this run folder (absent in ledgers of older builds).
+    #[serde(default)]
+    pub link: LinkCount,
+}
+
+/// What the team link itself counted, apart from `traffic` (which the node records per
+/// message): the two must agree. Kept in the ledger's file, not beside it, so that a
+/// restarted link continues both counts from one snapshot: a link killed between writing
+/// two files would leave them a write interval apart.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LinkCount {
+    /// Times the link was started in this run folder (1 for a link that never restarted).
+    pub starts: u64,
+    pub published_bytes: u64,
+    pub published_messages: u64,
 }
 
 type TrafficKey = (String, Option<u64>, Direction, String);
@@ -136,6 +152,9 @@ pub struct Ledger {
     traffic: BTreeMap<TrafficKey, Counts>,
     dropped: BTreeMap<(String, String), (u64, u64)>,
     rendezvous: Vec<RendezvousEntry>,
+    /// The link's count up to the previous start, and this start's (`link_published`).
+    link_before: LinkCount,
+    link_now: (u64, u64),
 }
 
 /// What a message carries, for `items`.
@@ -168,6 +187,8 @@ impl Ledger {
             traffic: BTreeMap::new(),
             dropped: BTreeMap::new(),
             rendezvous: Vec::new(),
+            link_before: LinkCount::default(),
+            link_now: (0, 0),
         }
     }
 
@@ -192,6 +213,7 @@ impl Ledger {
                 .insert((d.peer, d.reason), (d.messages, d.bytes));
         }
         ledger.rendezvous = file.rendezvous;
+        ledger.link_before = file.link;
         // A meeting open when the robot died ended then.
         for r in &mut ledger.rendezvous {
             if r.local_end_ms.is_none() {
@@ -292,6 +314,20 @@ impl Ledger {
             .sum()
     }
 
+    /// What this start of the link has handed to Zenoh so far (its own count).
+    pub fn link_published(&mut self, bytes: u64, messages: u64) {
+        self.link_now = (bytes, messages);
+    }
+
+    /// The link's count over every start: the previous starts' and this one's.
+    pub fn link_count(&self) -> LinkCount {
+        LinkCount {
+            starts: self.link_before.starts + 1,
+            published_bytes: self.link_before.published_bytes + self.link_now.0,
+            published_messages: self.link_before.published_messages + self.link_now.1,
+        }
+    }
+
     pub fn to_file(&self) -> LedgerFile {
         LedgerFile {
             format: LEDGER_FORMAT.into(),
@@ -328,6 +364,7 @@ impl Ledger {
                 })
                 .collect(),
             rendezvous: self.rendezvous.clone(),
+            link: self.link_count(),
         }
     }
 }
@@ -406,5 +443,54 @@ impl LedgerHandle {
         };
         std::fs::write(&tmp, text).map_err(err)?;
         std::fs::rename(&tmp, path).map_err(err)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A restarted link continues the link's own count with the rows, from one file: the
+    /// two still agree after the restart, and the starts are counted.
+    #[test]
+    fn a_resumed_ledger_continues_the_links_count() {
+        let mut first = Ledger::new("a", "t", 1, 100);
+        first.record(Direction::Sent, "b", Some(0), "descriptors", 300, 3, false);
+        first.link_published(300, 1);
+        let file: LedgerFile =
+            serde_json::from_str(&serde_json::to_string(&first.to_file()).unwrap()).unwrap();
+        assert_eq!(
+            file.link,
+            LinkCount {
+                starts: 1,
+                published_bytes: 300,
+                published_messages: 1
+            }
+        );
+        let mut again = Ledger::resume(file, 2);
+        again.record(Direction::Sent, "b", Some(0), "descriptors", 50, 1, true);
+        again.link_published(50, 1);
+        let file = again.to_file();
+        let rows: u64 = file
+            .traffic
+            .iter()
+            .filter(|t| t.direction == Direction::Sent)
+            .map(|t| t.counts.payload_bytes)
+            .sum();
+        assert_eq!(file.link.published_bytes, rows);
+        assert_eq!(file.link.published_bytes, 350);
+        assert_eq!(file.link.published_messages, 2);
+        assert_eq!(file.link.starts, 2);
+    }
+
+    /// A ledger written before the link's count was kept reads as no earlier start.
+    #[test]
+    fn an_older_ledger_without_the_links_count_still_reads() {
+        let mut text: serde_json::Value =
+            serde_json::to_value(Ledger::new("a", "t", 1, 100).to_file()).unwrap();
+        text.as_object_mut().unwrap().remove("link");
+        let file: LedgerFile = serde_json::from_value(text).unwrap();
+        assert_eq!(file.link, LinkCount::default());
+        assert_eq!(Ledger::resume(file, 2).link_count().starts, 1);
     }
 }

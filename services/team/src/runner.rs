@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use doorslam_ipc::wire::RobotId;
 use serde::{Deserialize, Serialize};
 
-use crate::ledger::{Ledger, LedgerError, LedgerHandle};
+use crate::ledger::{Ledger, LedgerError, LedgerHandle, LinkCount};
 use crate::link::{team_name, LinkConfig, LinkMode, TeamError};
 use crate::node::{LinkEvent, Node, Pieces};
 use crate::protocol::{Identity, PeerStats, ProtocolConfig};
@@ -329,9 +329,15 @@ pub struct Status {
     pub robot: String,
     pub epoch: u64,
     pub keyframes_created: u64,
-    /// Bytes and messages handed to Zenoh, counted by the link apart from the ledger.
+    /// Bytes and messages handed to Zenoh, counted by the link apart from the ledger's
+    /// rows, over every start of the link in this run folder (a restarted link continues
+    /// the count, as it continues the ledger).
     pub published_bytes: u64,
     pub published_messages: u64,
+    /// Times the link was started in this run folder: more than 1 after a kill, or after
+    /// the service failed and its supervisor restarted it.
+    #[serde(default)]
+    pub link_starts: u64,
     pub peers: BTreeMap<String, PeerStatus>,
     pub present: Vec<String>,
     pub backend: BackendStatus,
@@ -544,7 +550,7 @@ fn status_of(
     robot: &str,
     epoch: u64,
     node: &Node,
-    link: &ZenohLink,
+    published: LinkCount,
     side: &dyn RobotSide,
     finished: bool,
 ) -> Status {
@@ -552,8 +558,9 @@ fn status_of(
         robot: robot.into(),
         epoch,
         keyframes_created: side.keyframes(),
-        published_bytes: link.published_bytes(),
-        published_messages: link.published_messages(),
+        published_bytes: published.published_bytes,
+        published_messages: published.published_messages,
+        link_starts: published.starts,
         peers: node
             .sessions()
             .map(|s| {
@@ -690,12 +697,14 @@ pub fn run_robot(
     )?;
     let Some(mut link) = link else {
         tracing::info!(robot, "team: stopped before the link opened");
+        let published = ledger.lock().link_count();
         return Ok(Status {
             robot: robot.into(),
             epoch,
             keyframes_created: side.keyframes(),
-            published_bytes: 0,
-            published_messages: 0,
+            published_bytes: published.published_bytes,
+            published_messages: published.published_messages,
+            link_starts: published.starts,
             peers: BTreeMap::new(),
             present: Vec::new(),
             backend: side.backend_status(),
@@ -725,8 +734,14 @@ pub fn run_robot(
                  epoch: u64,
                  finished: bool|
      -> Result<(), RunError> {
+        // The link's count goes into the ledger's file with the rows it must agree with.
+        let published = {
+            let mut l = ledger.lock();
+            l.link_published(link.published_bytes(), link.published_messages());
+            l.link_count()
+        };
         ledger.write_json(&dir.join("ledger.json"))?;
-        let status = status_of(robot, epoch, node, link, side, finished);
+        let status = status_of(robot, epoch, node, published, side, finished);
         let text = serde_json::to_string_pretty(&status).map_err(|e| RunError::Io {
             path: dir.join("status.json"),
             source: std::io::Error::other(e),
@@ -767,7 +782,7 @@ pub fn run_robot(
     doorslam_ipc::lifecycle::sd_notify("STOPPING=1");
     side.after_turn(&mut node)?;
     write(&node, &link, side, epoch, true)?;
-    let final_status = status_of(robot, epoch, &node, &link, side, true);
+    let final_status = status_of(robot, epoch, &node, ledger.lock().link_count(), side, true);
     link.close()?;
     tracing::info!(robot, "team: stopped");
     Ok(final_status)
