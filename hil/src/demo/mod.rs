@@ -43,6 +43,12 @@ use crate::netns::{Net, NetError};
 pub use config::{DemoConfig, Kill};
 pub use robot::{RobotSnapshot, RobotState};
 
+/// A JSON file a robot's service wrote, or `None` while it is absent or half written
+/// (services rewrite their files as they run; the demo reads what is there).
+fn read_json(path: &Path) -> Option<serde_json::Value> {
+    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
+}
+
 /// Failures of the demo; each says which piece or file.
 #[derive(Debug, thiserror::Error)]
 pub enum DemoError {

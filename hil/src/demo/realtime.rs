@@ -18,7 +18,7 @@ use std::path::Path;
 
 use serde::Serialize;
 
-use super::CpuLog;
+use super::{read_json, CpuLog};
 
 /// Most frames a robot may lose (of those due while it ran) and still count as keeping up.
 pub const MAX_LOST_FRACTION: f64 = 0.01;
@@ -58,10 +58,6 @@ pub struct Realtime {
     pub per_robot: BTreeMap<String, RobotRealtime>,
     /// One sentence: kept up, or what was lost.
     pub verdict: String,
-}
-
-fn read_json(path: &Path) -> Option<serde_json::Value> {
-    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
 }
 
 /// The check from every robot's `camera.json` and `frontend.json`; `starts[r]` is how

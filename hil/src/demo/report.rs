@@ -30,7 +30,7 @@ use nalgebra::Point3;
 use serde::Serialize;
 
 use super::config::{DemoConfig, World};
-use super::{io_err, DemoError, RunLog, TimelineEvent};
+use super::{io_err, read_json, DemoError, RunLog, TimelineEvent};
 use crate::flights::robot_name;
 
 /// A closure agreeing with ground truth within this translation error is true.
@@ -423,9 +423,7 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
     let n = world.robots();
     let letters: Vec<String> = (0..n).map(|r| robot_name(r).to_string()).collect();
     let dir = |r: usize| out.join(&letters[r]);
-    let status = |r: usize| -> Option<serde_json::Value> {
-        serde_json::from_str(&std::fs::read_to_string(dir(r).join("backend.json")).ok()?).ok()
-    };
+    let status = |r: usize| read_json(&dir(r).join("backend.json"));
     let truth: Vec<Option<Trajectory>> = world.truth.iter().cloned().map(Some).collect();
 
     // Errors.
@@ -453,10 +451,7 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
             anchors.insert(r, anchor.clone());
             team_pairs.insert(r, pairs.clone());
         }
-        let frontend: Option<serde_json::Value> =
-            std::fs::read_to_string(dir(r).join("frontend.json"))
-                .ok()
-                .and_then(|t| serde_json::from_str(&t).ok());
+        let frontend = read_json(&dir(r).join("frontend.json"));
         per_robot.insert(
             letters[r].clone(),
             RobotSummary {
@@ -481,9 +476,7 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
                     .unwrap_or(false),
                 bytes_sent: super::robot::ledger_bytes_sent(&dir(r).join("ledger.json")),
                 starts: log.starts.get(r).copied().unwrap_or(0),
-                team_link_starts: std::fs::read_to_string(dir(r).join("status.json"))
-                    .ok()
-                    .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+                team_link_starts: read_json(&dir(r).join("status.json"))
                     .and_then(|s| s.get("link_starts").and_then(|v| v.as_u64()))
                     .unwrap_or(0),
                 service_failures: service_failures(&dir(r).join("robot.log")),

@@ -11,7 +11,7 @@ use crate::flights::robot_name;
 use crate::netns::Net;
 
 use super::cpu::CpuMeter;
-use super::{io_err, DemoError};
+use super::{io_err, read_json, DemoError};
 
 /// Where a robot is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -68,11 +68,6 @@ pub struct Robot {
     child: Option<Child>,
     pub state: RobotState,
     pub starts: u32,
-}
-
-fn read_json(path: &Path) -> Option<serde_json::Value> {
-    let text = std::fs::read_to_string(path).ok()?;
-    serde_json::from_str(&text).ok()
 }
 
 impl Robot {
