@@ -57,7 +57,9 @@ pub struct DpgoArgs {
     /// (for --method dgs).
     #[arg(long)]
     pub paper_thresholds: bool,
-    /// Over-relaxation γ of the two linear stages.
+    /// Over-relaxation γ of DGS's two linear stages (default 1 over --link direct, where
+    /// robots step in Gauss-Seidel order; 0.5 over the team link, where they solve on
+    /// estimates a round old).
     #[arg(long)]
     pub gamma: Option<f64>,
     /// The distributed solver: the paper's two-stage distributed Gauss-Seidel with
@@ -121,6 +123,33 @@ pub struct DpgoArgs {
     /// Plain Gauss-Seidel / block-coordinate descent, without Nesterov momentum.
     #[arg(long)]
     pub no_momentum: bool,
+    /// DGS stage 1 ends when a robot's relaxed rotations change by less than this in one
+    /// step (Frobenius norm over its poses; default 0.01, the paper's 0.1).
+    #[arg(long)]
+    pub rotation_change: Option<f64>,
+    /// DGS stage 2 ends when a robot's translations change by less than this in one step
+    /// (m, norm over its poses; default 0.01, the paper's 0.5).
+    #[arg(long)]
+    pub pose_change: Option<f64>,
+    /// A DGS stage ends after this much solving time even if it has not converged
+    /// (seconds on the agents' clock, --round-s per round; default 20).
+    #[arg(long)]
+    pub max_stage_s: Option<f64>,
+    /// DGS: a robot sends a separator's estimate only once it moved by more than this from
+    /// what the neighbour holds (relaxed rotation: Frobenius norm; pose: m + rad; default
+    /// 0.001). 0 sends every change.
+    #[arg(long)]
+    pub send_change: Option<f64>,
+    /// DGS: a robot that converged in a stage waits at most this long for its neighbours
+    /// to converge too before it moves on (seconds on the agents' clock; default 1).
+    #[arg(long)]
+    pub patience_s: Option<f64>,
+    /// Add the team's χ² every N rounds, and at every round a robot changes stage, to the
+    /// JSON as `trace` (round, chi2, stages, largest_change, rotation_error_deg against the
+    /// centralized two-stage rotations, translations_solved_chi2: the translations solved
+    /// centrally from the robots' rotations).
+    #[arg(long, value_name = "N")]
+    pub trace_every: Option<u64>,
     /// Robot ROBOT (a letter) joins at round N: ROBOT@N (repeatable).
     #[arg(long, value_name = "ROBOT@ROUND")]
     pub join: Vec<String>,
@@ -247,8 +276,46 @@ pub fn run(args: DpgoArgs) -> Result<()> {
             bail!("--gamma {g}: over-relaxation needs 0 < γ < 2");
         }
         agent.gamma = g;
+        agent.async_gamma = g;
     }
     agent.momentum = !args.no_momentum;
+    for (flag, v, field) in [
+        (
+            "--rotation-change",
+            args.rotation_change,
+            &mut agent.rotation_change,
+        ),
+        ("--pose-change", args.pose_change, &mut agent.pose_change),
+    ] {
+        if let Some(v) = v {
+            if !(v > 0.0 && v.is_finite()) {
+                bail!("{flag} {v}: a positive threshold");
+            }
+            *field = v;
+        }
+    }
+    if let Some(s) = args.max_stage_s {
+        if !(0.001..=1e6).contains(&s) {
+            bail!("--max-stage-s {s}: seconds between 0.001 and 1e6");
+        }
+        agent.max_stage = Duration::from_secs_f64(s);
+    }
+    if let Some(v) = args.send_change {
+        if !(v >= 0.0 && v.is_finite()) {
+            bail!("--send-change {v}: a threshold of 0 or more");
+        }
+        agent.send_rotation = v;
+        agent.send_pose = v;
+    }
+    if let Some(s) = args.patience_s {
+        if !(0.0..=1e6).contains(&s) {
+            bail!("--patience-s {s}: seconds between 0 and 1e6");
+        }
+        agent.patience = Duration::from_secs_f64(s);
+    }
+    if args.trace_every == Some(0) {
+        bail!("--trace-every 0: at least one round between points");
+    }
     if args.no_relinearize {
         agent.relinearize_fraction = f64::INFINITY;
     }
@@ -291,6 +358,7 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         outage: parse_outage(&args.outage)?,
         team_map: parse_at("--team-map", &args.team_map)?,
         stream: args.stream,
+        trace_every: args.trace_every,
         // The agents' clock and the team link's advance together, a round at a time.
         round: Duration::from_millis(round_ms),
     };

@@ -164,6 +164,36 @@ fn solve_translations(
         .collect())
 }
 
+/// The chordal initialization's second stage alone: every translation from the graph's
+/// rotations as they are (`Σ τ ‖tⱼ − tᵢ − Rᵢtᵢⱼ‖²`, the anchor's translation held). With
+/// a distributed method's rotations this is the fixed point its translation stage should
+/// reach, so the two can be told apart when it does not.
+pub(crate) fn translations_from_rotations(
+    graph: &mut PoseGraph<Isometry3<f64>>,
+    anchor: usize,
+) -> Result<(), SolveError> {
+    check_connected(graph, anchor)?;
+    let pairs: Vec<(usize, usize)> = graph.edges().iter().map(|e| (e.i, e.j)).collect();
+    let taus: Vec<f64> = graph
+        .edges()
+        .iter()
+        .map(|e| isotropic_weights(&e.information, 3, 3).1)
+        .collect();
+    let rotated: Vec<Vector3<f64>> = graph
+        .edges()
+        .iter()
+        .map(|e| graph.poses()[e.i].rotation * e.measured.translation.vector)
+        .collect();
+    let anchor_t = graph.poses()[anchor].translation.vector;
+    let t = solve_translations(&pairs, &taus, &rotated, graph.len(), anchor, anchor_t)?;
+    for (p, pose) in graph.poses_mut().iter_mut().enumerate() {
+        if p != anchor {
+            pose.translation = Translation3::from(t[p]);
+        }
+    }
+    Ok(())
+}
+
 impl Chordal for Isometry3<f64> {
     fn chordal(graph: &mut PoseGraph<Self>, anchor: usize) -> Result<(), SolveError> {
         let n = graph.len().checked_sub(1).ok_or(SolveError::Empty)?;

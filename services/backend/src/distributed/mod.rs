@@ -133,8 +133,18 @@ pub enum DpgoError {
 /// BENCHMARKS.md); [`AgentOptions::paper`] gives DOOR-SLAM's KITTI thresholds.
 #[derive(Debug, Clone, PartialEq)]
 pub struct AgentOptions {
-    /// Over-relaxation γ of the two linear stages (1 = plain Gauss-Seidel).
+    /// Over-relaxation γ of the two linear stages (1 = plain Gauss-Seidel) where each
+    /// robot solves with its neighbours' estimates of the same round (the runner's direct
+    /// link: Gauss-Seidel order).
     pub gamma: f64,
+    /// γ of the two linear stages over a link that delivers estimates a round late or
+    /// more (`link_delivers`: the team link, every robot's): there every robot solves at
+    /// once on its neighbours' previous estimates — block Jacobi, not Gauss-Seidel — and
+    /// two robots tied by closures, each moving all the way to the other's old estimate,
+    /// swap places every step (on KITTI 00 a 350 m two-cycle, χ² 1e6 after 500 rounds:
+    /// BENCHMARKS.md, "Where DGS fails on KITTI 00"). Half a step meets in the middle,
+    /// which removes that two-cycle.
+    pub async_gamma: f64,
     /// Stage 1 ends when the robot's relaxed rotations change by less than this
     /// (Frobenius norm over all its poses).
     pub rotation_change: f64,
@@ -218,6 +228,7 @@ impl Default for AgentOptions {
     fn default() -> Self {
         Self {
             gamma: 1.0,
+            async_gamma: 0.5,
             rotation_change: 1e-2,
             pose_change: 1e-2,
             refine_change: 1e-3,
@@ -697,6 +708,12 @@ impl Agent {
         self.stage
     }
 
+    /// The change the last solved step made (what the stage's threshold tests; infinite
+    /// before the first step of a stage).
+    pub fn last_change(&self) -> f64 {
+        self.last_change
+    }
+
     /// The robot whose first pose fixes this robot's frame.
     pub fn anchor(&self) -> u8 {
         self.anchor
@@ -945,6 +962,16 @@ impl Agent {
         Ok(true)
     }
 
+    /// γ of the linear stages: Gauss-Seidel's over a link that delivers within the round,
+    /// damped Jacobi's over one that delivers later ([`AgentOptions::async_gamma`]).
+    fn linear_gamma(&self) -> f64 {
+        if self.options.link_delivers {
+            self.options.async_gamma
+        } else {
+            self.options.gamma
+        }
+    }
+
     /// The momentum weight of this step: Nesterov's (k − 1)/(k + 2), restarted (0) when the
     /// block change grew since the last step.
     fn momentum(&mut self, change: f64) -> f64 {
@@ -1022,7 +1049,7 @@ impl Agent {
                 other: &other,
             },
         )?;
-        let gamma = self.options.gamma;
+        let gamma = self.linear_gamma();
         // x⁺ = x + γ(solve − x), change |x⁺ − x_prev|, then y = x⁺ + β(x⁺ − x_prev).
         let solved: Vec<(usize, Matrix3<f64>)> = new
             .into_iter()
@@ -1072,7 +1099,7 @@ impl Agent {
                 other: &other_t,
             },
         )?;
-        let gamma = self.options.gamma;
+        let gamma = self.linear_gamma();
         let solved: Vec<(usize, Vector3<f64>)> = new
             .into_iter()
             .enumerate()
@@ -1434,6 +1461,15 @@ impl Agent {
                 let new_frame = n.state.is_none_or(|s| {
                     s.epoch != h.epoch || s.generation != p.optimization || s.anchor != p.anchor
                 });
+                tracing::trace!(
+                    robot = self.robot,
+                    from = neighbor,
+                    sequence = h.sequence,
+                    stage = ?p.stage,
+                    estimates = p.estimates.len(),
+                    new_frame,
+                    "estimates received"
+                );
                 if new_frame {
                     n.rotations.clear();
                     n.poses.clear();

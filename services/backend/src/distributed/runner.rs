@@ -80,6 +80,10 @@ pub struct RunOptions {
     /// odometry, and a closure once both its poses exist), as a back-end is fed while it
     /// runs; `None`: every pose from the start.
     pub stream: Option<usize>,
+    /// Every this many rounds (and at each round a robot changes stage), the team's χ²
+    /// and each robot's stage go into [`RunReport::trace`]: where an iterative method
+    /// spends its rounds. `None`: no trace.
+    pub trace_every: Option<u64>,
 }
 
 impl Default for RunOptions {
@@ -94,6 +98,7 @@ impl Default for RunOptions {
             outage: BTreeMap::new(),
             team_map: BTreeMap::new(),
             stream: None,
+            trace_every: None,
         }
     }
 }
@@ -130,6 +135,10 @@ pub struct RunReport {
     pub bytes_by_kind: BTreeMap<String, u64>,
     pub messages_by_kind: BTreeMap<String, u64>,
     pub centralized_chi2: f64,
+    /// χ² of the centralized chordal initialization: DGS's two linear stages (relaxed
+    /// rotations, then translations with the rotations fixed) solved exactly on the whole
+    /// graph. Where DGS's stage 2 ends if its Gauss-Seidel iterations converge.
+    pub centralized_two_stage_chi2: f64,
     pub distributed_chi2: f64,
     /// (distributed − centralized) / centralized.
     pub chi2_gap: f64,
@@ -166,6 +175,52 @@ pub struct RunReport {
     /// check on the same graph).
     #[serde(skip)]
     pub rejected_keys: Vec<(u64, u64)>,
+    /// With [`RunOptions::trace_every`]: the team's χ² as the rounds go.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub trace: Vec<TracePoint>,
+}
+
+/// The team at the end of one round ([`RunOptions::trace_every`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct TracePoint {
+    pub round: u64,
+    /// χ² of the robots' estimates on the centralized graph (a robot not yet in the
+    /// anchor's frame counts where it is).
+    pub chi2: f64,
+    /// Stage name (`rotation`, `pose`, `refine`) → robots in it.
+    pub stages: BTreeMap<String, usize>,
+    /// The largest change any robot's last step made (the quantity the stages' stopping
+    /// thresholds test: Frobenius norm over a robot's relaxed rotations, or m + rad over
+    /// its poses).
+    pub largest_change: f64,
+    /// The largest angle (degrees) between a pose's rotation in the robots' estimates and in
+    /// the centralized two-stage solution (the relaxed rotations DGS's first stage solves
+    /// for, projected): how far the first stage is from its own fixed point.
+    pub rotation_error_deg: f64,
+    /// χ² with the estimates' rotations and every translation solved centrally from them:
+    /// the fixed point of DGS's second stage given where the first left the rotations.
+    pub translations_solved_chi2: f64,
+}
+
+/// The centralized graph with the agents' estimates in place of its poses.
+fn team_graph(central: &PoseGraph<SE3>, agents: &BTreeMap<u8, Agent>) -> PoseGraph<SE3> {
+    let mut team = central.clone();
+    for a in agents.values() {
+        for (k, x) in a.estimate() {
+            if let Some(p) = team.index_of(k) {
+                team.poses_mut()[p] = *x;
+            }
+        }
+    }
+    team
+}
+
+fn stage_name(s: Stage) -> &'static str {
+    match s {
+        Stage::Rotation => "rotation",
+        Stage::Pose => "pose",
+        Stage::Refine => "refine",
+    }
 }
 
 /// The robot ids on the wire: the key letter.
@@ -529,6 +584,11 @@ pub fn run_over(
     )?;
     let anchor = central.index_of(anchor_key).unwrap_or_default();
     SE3::chordal(&mut central, anchor)?;
+    let centralized_two_stage_chi2 = central.chi2();
+    let two_stage_rotations: Vec<SE3> = match options.trace_every {
+        Some(_) => central.poses().to_vec(),
+        None => Vec::new(),
+    };
     optimize(&mut central, anchor, &SolverOptions::default())?;
     let centralized_chi2 = central.chi2();
 
@@ -549,6 +609,8 @@ pub fn run_over(
     let mut iterations = 0;
     let mut converged = false;
     let robots: Vec<u8> = agents.keys().copied().collect();
+    let mut trace = Vec::new();
+    let mut last_stages: Vec<Stage> = Vec::new();
     for round in 0..options.max_rounds {
         iterations = round + 1;
         for (&r, part) in &parts {
@@ -653,6 +715,41 @@ pub fn run_over(
                 }
             }
         }
+        if let Some(every) = options.trace_every {
+            let stages: Vec<Stage> = agents.values().map(|a| a.stage()).collect();
+            if round % every.max(1) == 0 || stages != last_stages {
+                let mut by_stage = BTreeMap::new();
+                for s in &stages {
+                    *by_stage.entry(stage_name(*s).to_string()).or_default() += 1;
+                }
+                let team = team_graph(&central, &agents);
+                let rotation_error_deg = team
+                    .poses()
+                    .iter()
+                    .zip(&two_stage_rotations)
+                    .map(|(x, y)| x.rotation.angle_to(&y.rotation).to_degrees())
+                    .fold(0.0, f64::max);
+                let mut solved = team.clone();
+                let translations_solved_chi2 =
+                    match crate::init::translations_from_rotations(&mut solved, anchor) {
+                        Ok(()) => solved.chi2(),
+                        Err(_) => f64::NAN,
+                    };
+                trace.push(TracePoint {
+                    round,
+                    chi2: team.chi2(),
+                    rotation_error_deg,
+                    translations_solved_chi2,
+                    stages: by_stage,
+                    largest_change: agents
+                        .values()
+                        .map(|a| a.last_change())
+                        .filter(|c| c.is_finite())
+                        .fold(0.0, f64::max),
+                });
+            }
+            last_stages = stages;
+        }
         let link_idle = transport.as_deref().is_none_or(|t| t.idle());
         let all_joined = robots.iter().all(|&r| joined(r, round));
         let outage_over = options.outage.values().all(|o| round >= o.end);
@@ -699,14 +796,7 @@ pub fn run_over(
     // condensed method fixes the anchor pose at the identity, the centralized solve and
     // DGS at its initial value: one rigid transform apart, which χ² does not see).
     // χ² on the centralized oracle's graph: with PCM, the closures it kept.
-    let mut distributed = central.clone();
-    for a in agents.values() {
-        for (k, x) in a.estimate() {
-            if let Some(p) = distributed.index_of(k) {
-                distributed.poses_mut()[p] = *x;
-            }
-        }
-    }
+    let distributed = team_graph(&central, &agents);
     let to_central = central.poses()[anchor].compose(&distributed.poses()[anchor].inverse());
     let mut sq = 0.0;
     let mut poses = 0usize;
@@ -790,6 +880,7 @@ pub fn run_over(
         bytes_by_kind,
         messages_by_kind,
         centralized_chi2,
+        centralized_two_stage_chi2,
         distributed_chi2,
         chi2_gap: (distributed_chi2 - centralized_chi2) / centralized_chi2.max(f64::MIN_POSITIVE),
         ate_to_centralized: (sq / poses.max(1) as f64).sqrt(),
@@ -818,5 +909,6 @@ pub fn run_over(
             .or_else(|| agents.values().next())
             .map(|a| a.rejected_closures().to_vec())
             .unwrap_or_default(),
+        trace,
     })
 }
