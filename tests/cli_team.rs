@@ -236,3 +236,50 @@ fn example_router_config_parses() {
     assert_eq!(tls.roster().unwrap().len(), 3);
     assert!(parsed.router.listen.iter().all(|e| e.starts_with("tls/")));
 }
+
+/// `doorslam team delivery-bench --json`: one report per layer with the documented fields
+/// (a short run without a cut, ~4 s), and bad flags named.
+#[test]
+fn delivery_bench_reports_both_layers_and_names_bad_flags() {
+    let out = doorslam(&[
+        "team",
+        "delivery-bench",
+        "--messages",
+        "20",
+        "--rate-hz",
+        "20",
+        "--cut-s",
+        "0",
+        "--json",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("one JSON object");
+    let runs = v["runs"].as_array().expect("runs");
+    let layers: Vec<&str> = runs.iter().filter_map(|r| r["layer"].as_str()).collect();
+    assert_eq!(layers, ["acks", "zenoh-ext"]);
+    for r in runs {
+        for field in [
+            "messages",
+            "delivered",
+            "duplicates",
+            "out_of_order",
+            "reported_missed",
+            "resends",
+            "payload_bytes",
+            "bytes_a_to_b",
+            "bytes_b_to_a",
+            "overhead_ratio",
+            "recovered_after_s",
+            "time_s",
+        ] {
+            assert!(r.get(field).is_some(), "{field} missing: {r}");
+        }
+        assert_eq!(r["delivered"], 20, "{r}");
+        assert!(r["bytes_a_to_b"].as_u64().unwrap() > r["payload_bytes"].as_u64().unwrap());
+    }
+    for (flag, value) in [("--descriptors", "0"), ("--cut-s", "-1"), ("--cache", "0")] {
+        let out = doorslam(&["team", "delivery-bench", &format!("{flag}={value}")]);
+        assert!(!out.status.success());
+        assert!(stderr(&out).contains(flag), "{flag}: {}", stderr(&out));
+    }
+}

@@ -32,6 +32,7 @@
 
 mod camera;
 mod cull;
+pub mod delivery_bench;
 pub mod demo;
 pub mod dpgo;
 mod error;

@@ -1,10 +1,14 @@
 //! `doorslam team certs --out DIR --robots a,b,c [--routers r1] [--team NAME] [--days N | --clockless]`:
 //! the team CA and one certificate per robot and router for the TLS team link (logic in
-//! `doorslam_team::certs`).
+//! `doorslam_team::certs`); `doorslam team delivery-bench`: the team link's delivery
+//! contract against zenoh-ext's, bytes counted on a relay that cuts the link (logic in
+//! `doorslam_hil::delivery_bench`).
 
 use std::path::PathBuf;
 
-use anyhow::{Context, Result};
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 
 #[derive(Debug, Args)]
@@ -18,6 +22,51 @@ pub enum TeamCommand {
     /// Generate the team CA (or reuse the one in --out) and a certificate + key per robot
     /// and router, for `[team.tls]`.
     Certs(CertsArgs),
+    /// One stream of descriptor messages from robot a to robot b over two Zenoh sessions,
+    /// carried by the team link's acknowledgements and resends and by zenoh-ext's
+    /// AdvancedPublisher/AdvancedSubscriber, the link cut for a while: what each
+    /// delivers and the bytes it costs both ways (Zenoh framing and control included).
+    DeliveryBench(DeliveryBenchArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct DeliveryBenchArgs {
+    /// Which layers, one run each, one after the other.
+    #[arg(long, value_enum, value_delimiter = ',', default_values_t = [LayerArg::Acks, LayerArg::ZenohExt])]
+    pub layers: Vec<LayerArg>,
+    /// Messages robot a sends.
+    #[arg(long, default_value_t = 300)]
+    pub messages: u64,
+    /// Descriptors per message (140 B each on the wire).
+    #[arg(long, default_value_t = 2)]
+    pub descriptors: usize,
+    /// Messages per second.
+    #[arg(long, default_value_t = 10.0)]
+    pub rate_hz: f64,
+    /// The link is cut this many seconds after the first message ...
+    #[arg(long, default_value_t = 10.0)]
+    pub cut_at_s: f64,
+    /// ... for this many seconds (0: no cut).
+    #[arg(long, default_value_t = 8.0)]
+    pub cut_s: f64,
+    /// zenoh-ext: samples the publisher keeps for recovery.
+    #[arg(long, default_value_t = 128)]
+    pub cache: usize,
+    /// zenoh-ext: heartbeat period of sample-miss detection, seconds.
+    #[arg(long, default_value_t = 0.5)]
+    pub heartbeat_s: f64,
+    /// Acknowledgements: resend after this many milliseconds (doubling per resend).
+    #[arg(long, default_value_t = 1000)]
+    pub retransmit_ms: u64,
+    /// Print one JSON object (`runs`: one report per layer) instead of the table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum LayerArg {
+    Acks,
+    ZenohExt,
 }
 
 #[derive(Debug, Args)]
@@ -47,7 +96,77 @@ pub struct CertsArgs {
 pub fn run(args: TeamArgs) -> Result<()> {
     match args.command {
         TeamCommand::Certs(a) => certs(a),
+        TeamCommand::DeliveryBench(a) => delivery_bench(a),
     }
+}
+
+fn seconds(flag: &str, s: f64) -> Result<Duration> {
+    if !(0.0..=3600.0).contains(&s) {
+        bail!("{flag} {s}: seconds between 0 and 3600");
+    }
+    Ok(Duration::from_secs_f64(s))
+}
+
+fn delivery_bench(args: DeliveryBenchArgs) -> Result<()> {
+    use doorslam_hil::delivery_bench::{run, BenchOptions, Layer};
+    if args.descriptors == 0 || args.descriptors > 256 {
+        bail!("--descriptors {}: 1 to 256 per message", args.descriptors);
+    }
+    if args.cache == 0 {
+        bail!("--cache 0: zenoh-ext needs at least one sample to recover from");
+    }
+    let options = BenchOptions {
+        messages: args.messages,
+        descriptors: args.descriptors,
+        rate_hz: args.rate_hz,
+        cut_at: seconds("--cut-at-s", args.cut_at_s)?,
+        cut_for: seconds("--cut-s", args.cut_s)?,
+        cache: args.cache,
+        heartbeat: seconds("--heartbeat-s", args.heartbeat_s)?,
+        retransmit_ms: args.retransmit_ms.max(1),
+        ..BenchOptions::default()
+    };
+    let mut runs = Vec::new();
+    for layer in &args.layers {
+        let layer = match layer {
+            LayerArg::Acks => Layer::Acks,
+            LayerArg::ZenohExt => Layer::ZenohExt,
+        };
+        if !args.json {
+            eprintln!(
+                "{layer:?}: {} messages at {} Hz ...",
+                options.messages, options.rate_hz
+            );
+        }
+        runs.push(run(layer, &options).with_context(|| format!("delivery bench, {layer:?}"))?);
+    }
+    if args.json {
+        println!("{}", serde_json::json!({ "runs": runs }));
+        return Ok(());
+    }
+    println!("| layer | delivered | duplicates | out of order | missed (reported) | resends | bytes a→b | bytes b→a | × payload | recovered after cut (s) |");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    for r in &runs {
+        println!(
+            "| {:?} | {} / {} | {} | {} | {} | {} | {} | {} | {:.3} | {} |",
+            r.layer,
+            r.delivered,
+            r.messages,
+            r.duplicates,
+            r.out_of_order,
+            r.reported_missed,
+            r.resends,
+            r.bytes_a_to_b,
+            r.bytes_b_to_a,
+            r.overhead_ratio,
+            r.recovered_after_s
+                .map_or("-".into(), |s| format!("{s:.2}")),
+        );
+    }
+    if let Some(r) = runs.first() {
+        println!("payload: {} B ({} messages)", r.payload_bytes, r.messages);
+    }
+    Ok(())
 }
 
 fn certs(args: CertsArgs) -> Result<()> {

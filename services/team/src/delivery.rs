@@ -178,7 +178,7 @@ impl Inbox {
 
 /// What became of a message that arrived.
 #[derive(Debug)]
-pub(crate) enum Arrived {
+pub enum Arrived {
     /// Delivered now, with the ones it held back behind it, in order.
     Deliver(Vec<(Header, Body)>),
     /// Held back until the earlier ones of its kind arrive.
@@ -202,7 +202,7 @@ pub struct Outgoing {
 
 /// Delivery to and from one peer.
 #[derive(Debug)]
-pub(crate) struct Delivery {
+pub struct Delivery {
     me: RobotId,
     robot: u8,
     epoch: u64,

@@ -171,7 +171,8 @@ pub struct ProtocolConfig {
 }
 
 impl ProtocolConfig {
-    fn delivery(&self) -> DeliveryConfig {
+    /// The delivery layer's share of this configuration.
+    pub fn delivery(&self) -> DeliveryConfig {
         DeliveryConfig {
             retransmit_ms: self.retransmit_ms,
             window: self.window,
