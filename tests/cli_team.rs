@@ -261,6 +261,7 @@ fn delivery_bench_reports_both_layers_and_names_bad_flags() {
         for field in [
             "messages",
             "delivered",
+            "missing",
             "duplicates",
             "out_of_order",
             "reported_missed",
@@ -274,7 +275,10 @@ fn delivery_bench_reports_both_layers_and_names_bad_flags() {
         ] {
             assert!(r.get(field).is_some(), "{field} missing: {r}");
         }
-        assert_eq!(r["delivered"], 20, "{r}");
+        // zenoh-ext may lose the first message to discovery (BENCHMARKS.md, "The delivery
+        // contract against zenoh-ext's"); the acknowledgements never do.
+        let least = if r["layer"] == "acks" { 20 } else { 19 };
+        assert!(r["delivered"].as_u64().unwrap() >= least, "{r}");
         assert!(r["bytes_a_to_b"].as_u64().unwrap() > r["payload_bytes"].as_u64().unwrap());
     }
     for (flag, value) in [("--descriptors", "0"), ("--cut-s", "-1"), ("--cache", "0")] {

@@ -61,6 +61,9 @@ pub struct BenchOptions {
     pub cache: usize,
     /// zenoh-ext: heartbeat period of the publisher's sample-miss detection.
     pub heartbeat: Duration,
+    /// zenoh-ext: the subscriber also asks a publisher it detects (again) for its history
+    /// (`HistoryConfig::detect_late_publishers`, as zenoh-ext's example does).
+    pub history: bool,
     /// Acks: resend after this long (doubling per resend up to 16 times).
     pub retransmit_ms: u64,
     /// Zenoh's link lease (both layers).
@@ -79,6 +82,7 @@ impl Default for BenchOptions {
             cut_for: Duration::from_secs(8),
             cache: 128,
             heartbeat: Duration::from_millis(500),
+            history: true,
             // The team link's default (`[team] retransmit_ms`).
             retransmit_ms: 1000,
             lease: Duration::from_secs(2),
@@ -94,6 +98,8 @@ pub struct BenchReport {
     pub messages: u64,
     /// Distinct messages b received.
     pub delivered: u64,
+    /// The first (at most 20) messages b never received.
+    pub missing: Vec<u64>,
     /// Messages b received again.
     pub duplicates: u64,
     /// Deliveries that came after a later message of the stream.
@@ -402,6 +408,8 @@ struct Clock {
     next: u64,
     cut_state: u8, // 0 before, 1 during, 2 after
     cut_end: Option<Instant>,
+    /// When the last message was published (and the cut was over).
+    sent_at: Option<Instant>,
 }
 
 impl Clock {
@@ -412,6 +420,7 @@ impl Clock {
             next: 0,
             cut_state: 0,
             cut_end: None,
+            sent_at: None,
         }
     }
 
@@ -434,8 +443,16 @@ impl Clock {
         range
     }
 
-    fn done_sending(&self, options: &BenchOptions) -> bool {
-        self.next >= options.messages && (options.cut_for.is_zero() || self.cut_state == 2)
+    /// Whether the run is over: everything sent (and the cut over) and `delivered`, or
+    /// `settle` passed since.
+    fn finished(&mut self, delivered: bool, options: &BenchOptions) -> bool {
+        let sent =
+            self.next >= options.messages && (options.cut_for.is_zero() || self.cut_state == 2);
+        if !sent {
+            return false;
+        }
+        let at = *self.sent_at.get_or_insert_with(Instant::now);
+        delivered || at.elapsed() > options.settle
     }
 }
 
@@ -461,6 +478,10 @@ fn report(
         layer,
         messages: options.messages,
         delivered: received.seen.len() as u64,
+        missing: (0..options.messages)
+            .filter(|i| !received.seen.contains(i))
+            .take(20)
+            .collect(),
         duplicates: received.duplicates,
         out_of_order: received.out_of_order,
         reported_missed,
@@ -527,7 +548,6 @@ fn run_acks(
         .map_err(zerr("liveliness"))?;
     let mut received = Received::default();
     let mut clock = Clock::new(options.rate_hz);
-    let mut sent_done_at: Option<Instant> = None;
     let send = |p: &zenoh::pubsub::Publisher<'_>, m: &Message| -> Result<(), BenchError> {
         let bytes = m.encode().map_err(|e| BenchError::Wire(e.to_string()))?;
         p.put(bytes).wait().map_err(zerr("put"))
@@ -587,13 +607,10 @@ fn run_acks(
                 _ => {}
             }
         }
+        // Done when b has everything and a knows it (nothing left in flight).
         let all = received.seen.len() as u64 == options.messages;
-        if clock.done_sending(options) {
-            let at = *sent_done_at.get_or_insert_with(Instant::now);
-            // Done when b has everything and a knows it (nothing left in flight).
-            if (all && da.unsettled(Kind::Descriptors) == 0) || at.elapsed() > options.settle {
-                break;
-            }
+        if clock.finished(all && da.unsettled(Kind::Descriptors) == 0, options) {
+            break;
         }
         std::thread::sleep(Duration::from_millis(10));
     }
@@ -625,20 +642,20 @@ fn run_zenoh_ext(
         .publisher_detection()
         .wait()
         .map_err(zerr("advanced publisher"))?;
-    let subscriber = b
+    let mut builder = b
         .declare_subscriber(key)
-        .history(HistoryConfig::default().detect_late_publishers())
         .recovery(RecoveryConfig::default().heartbeat())
-        .subscriber_detection()
-        .wait()
-        .map_err(zerr("advanced subscriber"))?;
+        .subscriber_detection();
+    if options.history {
+        builder = builder.history(HistoryConfig::default().detect_late_publishers());
+    }
+    let subscriber = builder.wait().map_err(zerr("advanced subscriber"))?;
     let misses = subscriber
         .sample_miss_listener()
         .wait()
         .map_err(zerr("miss listener"))?;
     let mut received = Received::default();
     let mut clock = Clock::new(options.rate_hz);
-    let mut sent_done_at: Option<Instant> = None;
     let mut missed = 0u64;
     loop {
         let due = clock.tick(relay, options);
@@ -659,12 +676,8 @@ fn run_zenoh_ext(
         while let Ok(Some(m)) = misses.try_recv() {
             missed += u64::from(m.nb());
         }
-        let all = received.seen.len() as u64 == options.messages;
-        if clock.done_sending(options) {
-            let at = *sent_done_at.get_or_insert_with(Instant::now);
-            if all || at.elapsed() > options.settle {
-                break;
-            }
+        if clock.finished(received.seen.len() as u64 == options.messages, options) {
+            break;
         }
         std::thread::sleep(Duration::from_millis(10));
     }

@@ -55,6 +55,10 @@ pub struct DeliveryBenchArgs {
     /// zenoh-ext: heartbeat period of sample-miss detection, seconds.
     #[arg(long, default_value_t = 0.5)]
     pub heartbeat_s: f64,
+    /// zenoh-ext: the subscriber does not ask a publisher it detects again for its
+    /// history (only the heartbeat's recovery of missed samples).
+    #[arg(long)]
+    pub no_history: bool,
     /// Acknowledgements: resend after this many milliseconds (doubling per resend).
     #[arg(long, default_value_t = 1000)]
     pub retransmit_ms: u64,
@@ -123,6 +127,7 @@ fn delivery_bench(args: DeliveryBenchArgs) -> Result<()> {
         cut_for: seconds("--cut-s", args.cut_s)?,
         cache: args.cache,
         heartbeat: seconds("--heartbeat-s", args.heartbeat_s)?,
+        history: !args.no_history,
         retransmit_ms: args.retransmit_ms.max(1),
         ..BenchOptions::default()
     };
@@ -162,6 +167,9 @@ fn delivery_bench(args: DeliveryBenchArgs) -> Result<()> {
             r.recovered_after_s
                 .map_or("-".into(), |s| format!("{s:.2}")),
         );
+    }
+    for r in runs.iter().filter(|r| !r.missing.is_empty()) {
+        println!("{:?} never delivered: {:?}", r.layer, r.missing);
     }
     if let Some(r) = runs.first() {
         println!("payload: {} B ({} messages)", r.payload_bytes, r.messages);
