@@ -281,7 +281,13 @@ fn delivery_bench_reports_both_layers_and_names_bad_flags() {
         assert!(r["delivered"].as_u64().unwrap() >= least, "{r}");
         assert!(r["bytes_a_to_b"].as_u64().unwrap() > r["payload_bytes"].as_u64().unwrap());
     }
-    for (flag, value) in [("--descriptors", "0"), ("--cut-s", "-1"), ("--cache", "0")] {
+    for (flag, value) in [
+        ("--descriptors", "0"),
+        ("--cut-s", "-1"),
+        ("--cache", "0"),
+        ("--messages", "10000000"),
+        ("--rate-hz", "0"),
+    ] {
         let out = doorslam(&["team", "delivery-bench", &format!("{flag}={value}")]);
         assert!(!out.status.success());
         assert!(stderr(&out).contains(flag), "{flag}: {}", stderr(&out));

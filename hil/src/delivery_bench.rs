@@ -374,10 +374,14 @@ impl Received {
 
 /// One run of `layer` with `options`.
 pub fn run(layer: Layer, options: &BenchOptions) -> Result<BenchReport, BenchError> {
-    if options.messages == 0 || !(options.rate_hz > 0.0 && options.rate_hz <= 1000.0) {
+    let sane = (1..=1_000_000).contains(&options.messages)
+        && (1..=256).contains(&options.descriptors)
+        && options.rate_hz > 0.0
+        && options.rate_hz <= 1000.0;
+    if !sane {
         return Err(BenchError::Options(format!(
-            "{} messages at {} Hz: at least one message, 0 < rate ≤ 1000 Hz",
-            options.messages, options.rate_hz
+            "{} messages of {} descriptors at {} Hz: 1 to 10⁶ messages of 1 to 256, 0 < rate ≤ 1000 Hz",
+            options.messages, options.descriptors, options.rate_hz
         )));
     }
     let port = free_port()?;

@@ -116,6 +116,12 @@ fn delivery_bench(args: DeliveryBenchArgs) -> Result<()> {
     if args.descriptors == 0 || args.descriptors > 256 {
         bail!("--descriptors {}: 1 to 256 per message", args.descriptors);
     }
+    if !(1..=1_000_000).contains(&args.messages) {
+        bail!("--messages {}: 1 to 1000000", args.messages);
+    }
+    if !(args.rate_hz > 0.0 && args.rate_hz <= 1000.0) {
+        bail!("--rate-hz {}: more than 0, at most 1000", args.rate_hz);
+    }
     if args.cache == 0 {
         bail!("--cache 0: zenoh-ext needs at least one sample to recover from");
     }
