@@ -405,12 +405,21 @@ pub fn run(layer: Layer, options: &BenchOptions) -> Result<BenchReport, BenchErr
     result
 }
 
-/// Paces the stream and the cut; `publish(i)` sends message i.
+/// Where the run is with respect to the cut.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Cut {
+    Before,
+    During,
+    After,
+}
+
+/// Paces the stream (which messages are due) and switches the cut.
 struct Clock {
     start: Instant,
     period: Duration,
+    /// The first message not yet due.
     next: u64,
-    cut_state: u8, // 0 before, 1 during, 2 after
+    cut: Cut,
     cut_end: Option<Instant>,
     /// When the last message was published (and the cut was over).
     sent_at: Option<Instant>,
@@ -422,7 +431,7 @@ impl Clock {
             start: Instant::now(),
             period: Duration::from_secs_f64(1.0 / rate_hz),
             next: 0,
-            cut_state: 0,
+            cut: Cut::Before,
             cut_end: None,
             sent_at: None,
         }
@@ -432,12 +441,12 @@ impl Clock {
     fn tick(&mut self, relay: &Relay, options: &BenchOptions) -> std::ops::Range<u64> {
         let t = self.start.elapsed();
         if !options.cut_for.is_zero() {
-            if self.cut_state == 0 && t >= options.cut_at {
+            if self.cut == Cut::Before && t >= options.cut_at {
                 relay.set_cut(true);
-                self.cut_state = 1;
-            } else if self.cut_state == 1 && t >= options.cut_at + options.cut_for {
+                self.cut = Cut::During;
+            } else if self.cut == Cut::During && t >= options.cut_at + options.cut_for {
                 relay.set_cut(false);
-                self.cut_state = 2;
+                self.cut = Cut::After;
                 self.cut_end = Some(Instant::now());
             }
         }
@@ -451,7 +460,7 @@ impl Clock {
     /// `settle` passed since.
     fn finished(&mut self, delivered: bool, options: &BenchOptions) -> bool {
         let sent =
-            self.next >= options.messages && (options.cut_for.is_zero() || self.cut_state == 2);
+            self.next >= options.messages && (options.cut_for.is_zero() || self.cut == Cut::After);
         if !sent {
             return false;
         }
