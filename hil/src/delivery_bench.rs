@@ -511,6 +511,33 @@ fn report(
     })
 }
 
+/// Everything waiting at one end of the acknowledged stream: Hellos and acknowledgements
+/// to its `Delivery`, the messages it delivers (in order, each once) to `deliver`.
+fn take_in(
+    delivery: &mut Delivery,
+    inbox: &zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    mut deliver: impl FnMut(Body),
+) {
+    while let Ok(Some(s)) = inbox.try_recv() {
+        let Ok(m) = Message::decode(&s.payload().to_bytes()) else {
+            continue;
+        };
+        match m.body {
+            Body::Hello(h) => {
+                delivery.hello(m.header.sequence, &h);
+            }
+            Body::Ack(ack) => {
+                let _ = delivery.acknowledged(&ack);
+            }
+            body => {
+                if let Arrived::Deliver(run) = delivery.arrive(m.header, body) {
+                    run.into_iter().for_each(|(_, body)| deliver(body));
+                }
+            }
+        }
+    }
+}
+
 fn run_acks(
     a: &Session,
     b: &Session,
@@ -584,42 +611,13 @@ fn run_acks(
         for o in db.poll(now_ms, Some(1)) {
             send(&to_a, &o.message)?;
         }
-        while let Ok(Some(s)) = at_b.try_recv() {
-            let Ok(m) = Message::decode(&s.payload().to_bytes()) else {
-                continue;
-            };
-            match m.body {
-                Body::Hello(h) => {
-                    db.hello(m.header.sequence, &h);
-                }
-                Body::Ack(ack) => {
-                    let _ = db.acknowledged(&ack);
-                }
-                body => {
-                    if let Arrived::Deliver(run) = db.arrive(m.header, body) {
-                        for (_, body) in run {
-                            if let Some(id) = id_of(&body) {
-                                received.take(id);
-                            }
-                        }
-                    }
-                }
+        take_in(&mut db, &at_b, |body| {
+            if let Some(id) = id_of(&body) {
+                received.take(id);
             }
-        }
-        while let Ok(Some(s)) = at_a.try_recv() {
-            let Ok(m) = Message::decode(&s.payload().to_bytes()) else {
-                continue;
-            };
-            match m.body {
-                Body::Hello(h) => {
-                    da.hello(m.header.sequence, &h);
-                }
-                Body::Ack(ack) => {
-                    let _ = da.acknowledged(&ack);
-                }
-                _ => {}
-            }
-        }
+        });
+        // a gets only Hellos and acknowledgements.
+        take_in(&mut da, &at_a, |_| {});
         // Done when b has everything and a knows it (nothing left in flight).
         let all = received.seen.len() as u64 == options.messages;
         if clock.finished(all && da.unsettled(Kind::Descriptors) == 0, options) {
