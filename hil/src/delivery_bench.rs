@@ -322,6 +322,11 @@ fn message(i: u64, descriptors: usize) -> Message {
     }
 }
 
+/// A message's wire bytes (what both layers publish).
+fn encoded(m: &Message) -> Result<Vec<u8>, BenchError> {
+    m.encode().map_err(|e| BenchError::Wire(e.to_string()))
+}
+
 fn id_of(body: &Body) -> Option<u64> {
     match body {
         Body::Descriptors(d) => Some(d.keyframes.start / d.descriptors.len().max(1) as u64),
@@ -352,6 +357,11 @@ impl Received {
         }
         self.highest = Some(self.highest.map_or(id, |h| h.max(id)));
         self.check_backlog();
+    }
+
+    /// Whether b has every message of the stream.
+    fn has_all(&self, options: &BenchOptions) -> bool {
+        self.seen.len() as u64 == options.messages
     }
 
     /// The link just came back: what was published until now is the backlog.
@@ -479,13 +489,8 @@ fn report(
     reported_missed: u64,
 ) -> Result<BenchReport, BenchError> {
     let payload_bytes = (0..options.messages)
-        .map(|i| {
-            message(i, options.descriptors)
-                .encode()
-                .map(|b| b.len() as u64)
-        })
-        .sum::<Result<u64, _>>()
-        .map_err(|e| BenchError::Wire(e.to_string()))?;
+        .map(|i| encoded(&message(i, options.descriptors)).map(|b| b.len() as u64))
+        .sum::<Result<u64, _>>()?;
     let (ab, ba) = relay.bytes();
     Ok(BenchReport {
         layer,
@@ -589,8 +594,7 @@ fn run_acks(
     let mut received = Received::default();
     let mut clock = Clock::new(options.rate_hz);
     let send = |p: &zenoh::pubsub::Publisher<'_>, m: &Message| -> Result<(), BenchError> {
-        let bytes = m.encode().map_err(|e| BenchError::Wire(e.to_string()))?;
-        p.put(bytes).wait().map_err(zerr("put"))
+        p.put(encoded(m)?).wait().map_err(zerr("put"))
     };
     loop {
         let due = clock.tick(relay, options);
@@ -619,7 +623,7 @@ fn run_acks(
         // a gets only Hellos and acknowledgements.
         take_in(&mut da, &at_a, |_| {});
         // Done when b has everything and a knows it (nothing left in flight).
-        let all = received.seen.len() as u64 == options.messages;
+        let all = received.has_all(options);
         if clock.finished(all && da.unsettled(Kind::Descriptors) == 0, options) {
             break;
         }
@@ -672,9 +676,7 @@ fn run_zenoh_ext(
         let due = clock.tick(relay, options);
         received.note_cut_end(&clock);
         for i in due {
-            let bytes = message(i, options.descriptors)
-                .encode()
-                .map_err(|e| BenchError::Wire(e.to_string()))?;
+            let bytes = encoded(&message(i, options.descriptors))?;
             publisher.put(bytes).wait().map_err(zerr("put"))?;
         }
         while let Ok(Some(s)) = subscriber.try_recv() {
@@ -687,7 +689,7 @@ fn run_zenoh_ext(
         while let Ok(Some(m)) = misses.try_recv() {
             missed += u64::from(m.nb());
         }
-        if clock.finished(received.seen.len() as u64 == options.messages, options) {
+        if clock.finished(received.has_all(options), options) {
             break;
         }
         std::thread::sleep(Duration::from_millis(10));

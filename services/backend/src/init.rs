@@ -173,6 +173,27 @@ pub(crate) fn translations_from_rotations(
     anchor: usize,
 ) -> Result<(), SolveError> {
     check_connected(graph, anchor)?;
+    let rotations: Vec<Matrix3<f64>> = graph
+        .poses()
+        .iter()
+        .map(|x| x.rotation.to_rotation_matrix().into_inner())
+        .collect();
+    let t = translations_given(graph, anchor, &rotations)?;
+    for (p, pose) in graph.poses_mut().iter_mut().enumerate() {
+        if p != anchor {
+            pose.translation = Translation3::from(t[p]);
+        }
+    }
+    Ok(())
+}
+
+/// Stage 2 of the chordal initialization in 3-D: every translation from the rotations
+/// `rotations[p]` of the poses, the anchor's translation held.
+fn translations_given(
+    graph: &PoseGraph<Isometry3<f64>>,
+    anchor: usize,
+    rotations: &[Matrix3<f64>],
+) -> Result<Vec<Vector3<f64>>, SolveError> {
     let pairs: Vec<(usize, usize)> = graph.edges().iter().map(|e| (e.i, e.j)).collect();
     let taus: Vec<f64> = graph
         .edges()
@@ -182,16 +203,10 @@ pub(crate) fn translations_from_rotations(
     let rotated: Vec<Vector3<f64>> = graph
         .edges()
         .iter()
-        .map(|e| graph.poses()[e.i].rotation * e.measured.translation.vector)
+        .map(|e| rotations[e.i] * e.measured.translation.vector)
         .collect();
     let anchor_t = graph.poses()[anchor].translation.vector;
-    let t = solve_translations(&pairs, &taus, &rotated, graph.len(), anchor, anchor_t)?;
-    for (p, pose) in graph.poses_mut().iter_mut().enumerate() {
-        if p != anchor {
-            pose.translation = Translation3::from(t[p]);
-        }
-    }
-    Ok(())
+    solve_translations(&pairs, &taus, &rotated, graph.len(), anchor, anchor_t)
 }
 
 impl Chordal for Isometry3<f64> {
@@ -270,14 +285,7 @@ impl Chordal for Isometry3<f64> {
             })
             .collect();
         // 2. Translations with those rotations.
-        let rotated: Vec<Vector3<f64>> = graph
-            .edges()
-            .iter()
-            .map(|e| rotations[e.i] * e.measured.translation.vector)
-            .collect();
-        let taus: Vec<f64> = w.iter().map(|(_, t)| *t).collect();
-        let anchor_t = graph.poses()[anchor].translation.vector;
-        let t = solve_translations(&pairs, &taus, &rotated, graph.len(), anchor, anchor_t)?;
+        let t = translations_given(graph, anchor, &rotations)?;
         // The anchor keeps its pose exactly (a matrix-quaternion round trip would move it
         // by rounding, and the solver holds it where it is).
         for (p, pose) in graph.poses_mut().iter_mut().enumerate() {
