@@ -394,7 +394,7 @@ fn faults_survived(out: &Path, s: &Value, kills_asked: &[(&str, f64)], bound: f6
     for r in ["a", "b"] {
         let x = &s["per_robot"][r];
         println!(
-            "{r}: team frame {} (ATE {} m; own alignment {} m), anchor {}, converged {}, starts {}, team link starts {}, service failures {}",
+            "{r}: team frame {} (ATE {} m; own alignment {} m), anchor {}, converged {}, starts {}, team link starts {}, service failures {}, present at end {}, presence mended {}, unknown_peer drops {}",
             x["in_team_frame"],
             x["ate_team_frame_m"],
             x["ate_team_m"],
@@ -402,7 +402,10 @@ fn faults_survived(out: &Path, s: &Value, kills_asked: &[(&str, f64)], bound: f6
             x["converged"],
             x["starts"],
             x["team_link_starts"],
-            x["service_failures"]
+            x["service_failures"],
+            x["present_at_end"],
+            x["presence"],
+            x["unknown_peer_drops"]
         );
     }
     println!(

@@ -76,6 +76,15 @@ pub struct RobotSummary {
     /// Times its team link was started (`status.json`): above `starts` when the team
     /// service failed and `up` restarted it.
     pub team_link_starts: u64,
+    /// What its team link's presence checks mended (`status.json` `presence`: peers whose
+    /// token put or delete Zenoh's subscriber missed, sessions reopened); 0s on a healthy
+    /// radio.
+    pub presence: doorslam_team::presence::PresenceMends,
+    /// The peers its team link counted present when it stopped.
+    pub present_at_end: Vec<String>,
+    /// Messages its team link dropped because their sender was not present
+    /// (`ledger.json` `dropped`, reason `unknown_peer`), by claimed sender.
+    pub unknown_peer_drops: std::collections::BTreeMap<String, u64>,
     /// Every service failure `up` logged (`robot.log`: the service, its exit status), and
     /// every panic message: none in a healthy run, a killed robot's included.
     pub service_failures: Vec<String>,
@@ -479,6 +488,13 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
                 team_link_starts: read_json(&dir(r).join("status.json"))
                     .and_then(|s| s.get("link_starts").and_then(|v| v.as_u64()))
                     .unwrap_or(0),
+                presence: read_json(&dir(r).join("status.json"))
+                    .and_then(|s| serde_json::from_value(s.get("presence")?.clone()).ok())
+                    .unwrap_or_default(),
+                present_at_end: read_json(&dir(r).join("status.json"))
+                    .and_then(|s| serde_json::from_value(s.get("present")?.clone()).ok())
+                    .unwrap_or_default(),
+                unknown_peer_drops: unknown_peer_drops(&dir(r).join("ledger.json")),
                 service_failures: service_failures(&dir(r).join("robot.log")),
                 cpu_s: log.cpu.robots_s.get(r).copied().unwrap_or(0.0),
                 distance_m: truth[r].as_ref().map_or(0.0, horizontal_length),
@@ -811,6 +827,21 @@ fn scenario(world: &World, truth: &[Option<Trajectory>]) -> Scenario {
             .filter(|e| e.kind == crate::flights::RangeEventKind::Enter && e.time_s > 0.0)
             .count(),
     }
+}
+
+/// `ledger.json`'s drops for reason `unknown_peer`, by claimed sender (empty when the file
+/// is missing or unreadable: the summary says what it can).
+fn unknown_peer_drops(ledger: &Path) -> std::collections::BTreeMap<String, u64> {
+    let mut out = std::collections::BTreeMap::new();
+    let Some(rows) = read_json(ledger).and_then(|l| l.get("dropped").cloned()) else {
+        return out;
+    };
+    let rows: Vec<doorslam_team::ledger::DropEntry> =
+        serde_json::from_value(rows).unwrap_or_default();
+    for d in rows.into_iter().filter(|d| d.reason == "unknown_peer") {
+        *out.entry(d.peer).or_default() += d.messages;
+    }
+    out
 }
 
 #[cfg(test)]

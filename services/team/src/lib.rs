@@ -13,6 +13,8 @@
 //!   peer, decodes, sender), counts it in the [`ledger`], routes it to its peer's session.
 //! - [`seen`]: the bounded sets of ids already processed (a window above a rising floor).
 //! - [`zenoh_link`]: the [`Link`] over Zenoh, with discovery by liveliness tokens.
+//! - [`presence`]: the present peers, checked against liveliness queries (missed puts
+//!   and deletes mended, a session whose tables lost a talking peer reopened).
 //! - [`emulate`]: an in-process [`Link`] with loss and cuts, for tests.
 //! - [`standin`]: simulated descriptors, a truth-table verifier, back-end stand-ins.
 //! - [`bw`]: the bandwidth report (`doorslam bw`) from ledger files.
@@ -28,6 +30,7 @@ pub mod emulate;
 pub mod ledger;
 pub mod link;
 pub mod node;
+pub mod presence;
 pub mod protocol;
 pub mod router;
 pub mod runner;

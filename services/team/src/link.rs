@@ -5,7 +5,7 @@
 //! | key expression | what | who declares it |
 //! |---|---|---|
 //! | `doorslam/<team>/alive/<robot>` | liveliness token: present while `<robot>`'s team link runs | each robot, once |
-//! | `doorslam/<team>/alive/*` | liveliness subscriber (with history): token put = peer appeared, delete = peer left | each robot |
+//! | `doorslam/<team>/alive/*` | liveliness subscriber (with history): token put = peer appeared, delete = peer left; liveliness queries every 3 s check it (`crate::presence`) | each robot |
 //! | `doorslam/<team>/<to>/<kind>/<from>` | one wire message from `<from>` to `<to>`; `<kind>` is `Kind::name()` (`hello`, `descriptors`, `matches`, `verification_features`, `loop_closures`, `pose_estimates`, `ack`, ...) | a publisher per (peer, kind) |
 //! | `doorslam/<team>/<me>/*/*` | subscriber of everything addressed to `<me>` | each robot |
 //!

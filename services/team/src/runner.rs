@@ -17,6 +17,7 @@ use serde::{Deserialize, Serialize};
 use crate::ledger::{Ledger, LedgerError, LedgerHandle, LinkCount};
 use crate::link::{team_name, LinkConfig, LinkMode, TeamError};
 use crate::node::{LinkEvent, Node, Pieces};
+use crate::presence::PresenceMends;
 use crate::protocol::{Identity, PeerStats, ProtocolConfig};
 use crate::security::{Holder, Security, TlsSection};
 use crate::standin::{BackendLog, EchoBackend, SimPlaces, SimWorld, TruthVerifier};
@@ -359,6 +360,10 @@ pub struct Status {
     pub peers_refused: u64,
     #[serde(default)]
     pub peers_evicted: u64,
+    /// What the link's presence checks mended (missed token puts and deletes, sessions
+    /// reopened); all 0 on a healthy radio.
+    #[serde(default)]
+    pub presence: PresenceMends,
 }
 
 /// `status.json`'s `bounds`.
@@ -551,6 +556,7 @@ fn status_of(
     epoch: u64,
     node: &Node,
     published: LinkCount,
+    presence: PresenceMends,
     side: &dyn RobotSide,
     finished: bool,
 ) -> Status {
@@ -596,6 +602,7 @@ fn status_of(
         publish_failures: node.publish_failures,
         peers_refused: node.peers_refused,
         peers_evicted: node.peers_evicted,
+        presence,
     }
 }
 
@@ -715,6 +722,7 @@ pub fn run_robot(
             publish_failures: 0,
             peers_refused: 0,
             peers_evicted: 0,
+            presence: PresenceMends::default(),
         });
     };
     side.epoch_started(epoch)?;
@@ -741,7 +749,15 @@ pub fn run_robot(
             l.link_count()
         };
         ledger.write_json(&dir.join("ledger.json"))?;
-        let status = status_of(robot, epoch, node, published, side, finished);
+        let status = status_of(
+            robot,
+            epoch,
+            node,
+            published,
+            link.presence_mends(),
+            side,
+            finished,
+        );
         let text = serde_json::to_string_pretty(&status).map_err(|e| RunError::Io {
             path: dir.join("status.json"),
             source: std::io::Error::other(e),
@@ -782,7 +798,15 @@ pub fn run_robot(
     doorslam_ipc::lifecycle::sd_notify("STOPPING=1");
     side.after_turn(&mut node)?;
     write(&node, &link, side, epoch, true)?;
-    let final_status = status_of(robot, epoch, &node, ledger.lock().link_count(), side, true);
+    let final_status = status_of(
+        robot,
+        epoch,
+        &node,
+        ledger.lock().link_count(),
+        link.presence_mends(),
+        side,
+        true,
+    );
     link.close()?;
     tracing::info!(robot, "team: stopped");
     Ok(final_status)

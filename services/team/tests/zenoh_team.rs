@@ -219,3 +219,160 @@ fn a_thousand_descriptor_messages_per_second_arrive_without_loss() {
     la.close().unwrap();
     lb.close().unwrap();
 }
+
+/// A robot that restarts opens a new session before the old one's connection is found
+/// dead (a killed process on a lossy radio): for a while two sessions hold the same token,
+/// and when the old one goes Zenoh reports the token deleted although the robot is there.
+/// The link must not report the robot gone for good (CI: the restarted robot never
+/// rejoined the team frame because its peer had marked it absent).
+#[test]
+fn a_restarted_robot_whose_old_session_closes_late_stays_present() {
+    use doorslam_team::{Link, LinkEvent};
+    let team = format!("zs{}", std::process::id());
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let open = |id: &str, listen: Vec<String>, connect: Vec<String>| {
+        ZenohLink::open(&ZenohLinkConfig {
+            team: team.clone(),
+            me: RobotId::new(id).unwrap(),
+            link: LinkConfig {
+                listen,
+                connect,
+                multicast_scouting: false,
+            },
+            mode: LinkMode::Peer,
+            lease_ms: Some(2000),
+            security: None,
+        })
+        .unwrap()
+    };
+    let idb = RobotId::new("b").unwrap();
+    // What `a` was last told about b: Some(true) present, Some(false) gone.
+    let watch = |la: &mut ZenohLink, present: &mut Option<bool>, for_s: f64| {
+        let start = Instant::now();
+        while start.elapsed().as_secs_f64() < for_s {
+            for e in la.poll_events(Duration::from_millis(20)) {
+                match e {
+                    LinkEvent::PeerAppeared(p) if p == idb => *present = Some(true),
+                    LinkEvent::PeerLeft(p) if p == idb => *present = Some(false),
+                    _ => {}
+                }
+            }
+        }
+    };
+    let mut la = open("a", vec![endpoint.clone()], vec![]);
+    let old_b = open("b", vec![], vec![endpoint.clone()]);
+    let mut present = None;
+    let start = Instant::now();
+    while present != Some(true) {
+        assert!(start.elapsed() < Duration::from_secs(10), "b never seen");
+        watch(&mut la, &mut present, 0.1);
+    }
+    let new_b = open("b", vec![], vec![endpoint]);
+    watch(&mut la, &mut present, 1.0);
+    old_b.close().unwrap();
+    // Zenoh reports the old token's deletion at once; give the link time to settle.
+    watch(&mut la, &mut present, 6.0);
+    assert_eq!(present, Some(true), "b is running but a was told it left");
+    // And a real departure is still reported.
+    new_b.close().unwrap();
+    watch(&mut la, &mut present, 6.0);
+    assert_eq!(
+        present,
+        Some(false),
+        "b closed its session but a still counts it present"
+    );
+    la.close().unwrap();
+}
+
+/// A teammate that talks to a robot whose Zenoh tables hold no token of it is the mark of
+/// a session that lost its peer (two demo runs on a lossy radio: a robot dropped its
+/// peer's messages for the whole settle). The link asks Zenoh, finds no token, and after
+/// `reopen_after_ms` of such talk reopens its session; it keeps its other peer, and the
+/// next reopen needs twice as long (a teammate that never declares a token cannot make
+/// the robot leave and rejoin every few seconds).
+#[test]
+fn a_link_that_hears_a_robot_without_its_token_reopens_its_session_and_keeps_its_team() {
+    use doorslam_team::presence::PresenceRules;
+    use doorslam_team::{Link, LinkEvent};
+    use zenoh::Wait;
+    let team = format!("zp{}", std::process::id());
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let config = |id: &str, listen: Vec<String>, connect: Vec<String>| ZenohLinkConfig {
+        team: team.clone(),
+        me: RobotId::new(id).unwrap(),
+        link: LinkConfig {
+            listen,
+            connect,
+            multicast_scouting: false,
+        },
+        mode: LinkMode::Peer,
+        lease_ms: Some(2000),
+        security: None,
+    };
+    let rules = PresenceRules {
+        check_every_ms: 300,
+        min_gap_ms: 100,
+        reopen_after_ms: 2_000,
+        reopen_misses: 3,
+        forget_unheard_ms: 60_000,
+    };
+    let mut la = ZenohLink::open_with(&config("a", vec![endpoint.clone()], vec![]), rules).unwrap();
+    let mut lb = ZenohLink::open(&config("b", vec![], vec![endpoint.clone()])).unwrap();
+    let z = doorslam_team::open_peer(&LinkConfig {
+        listen: vec![],
+        connect: vec![endpoint],
+        multicast_scouting: false,
+    })
+    .unwrap();
+    let ida = RobotId::new("a").unwrap();
+    let idb = RobotId::new("b").unwrap();
+    let idz = RobotId::new("z").unwrap();
+    let z_key = doorslam_team::key_expr(&team, "a", "hello", "z").unwrap();
+    let start = Instant::now();
+    let mut b_present = false;
+    let mut from_b_after_reopen = 0;
+    let mut z_appeared = false;
+    let mut first_reopen = None;
+    while start.elapsed() < Duration::from_secs(12) {
+        z.put(z_key.clone(), vec![1u8; 16]).wait().unwrap();
+        lb.publish(&ida, doorslam_ipc::wire::Kind::Hello, &[2u8; 16])
+            .unwrap();
+        let _ = lb.poll_events(Duration::ZERO);
+        for e in la.poll_events(Duration::from_millis(100)) {
+            match e {
+                LinkEvent::PeerAppeared(p) if p == idb => b_present = true,
+                LinkEvent::PeerLeft(p) if p == idb => b_present = false,
+                LinkEvent::PeerAppeared(p) if p == idz => z_appeared = true,
+                LinkEvent::Message { from, .. } if from == idb && la.reopens() > 0 => {
+                    from_b_after_reopen += 1
+                }
+                _ => {}
+            }
+        }
+        if la.reopens() == 1 && first_reopen.is_none() {
+            first_reopen = Some(start.elapsed());
+        }
+    }
+    let first = first_reopen.expect("the link never reopened its session");
+    assert!(
+        first >= Duration::from_secs(2) && first < Duration::from_secs(6),
+        "first reopen after {first:?}"
+    );
+    assert_eq!(
+        la.reopens(),
+        2,
+        "backoff: 2 s of talk, then 4 s, within 12 s"
+    );
+    assert!(
+        !z_appeared,
+        "a robot without a token is never reported present"
+    );
+    assert!(b_present, "b was lost by the reopen");
+    assert!(
+        from_b_after_reopen > 0,
+        "b's messages stopped reaching a after the reopen"
+    );
+    la.close().unwrap();
+    lb.close().unwrap();
+    z.close().wait().unwrap();
+}
