@@ -62,6 +62,10 @@ pub struct DpgoArgs {
     /// estimates a round old).
     #[arg(long)]
     pub gamma: Option<f64>,
+    /// Over the team link, damp (γ 0.5, or --gamma) only the steps that reverse a robot's
+    /// previous one, full steps otherwise (for --method dgs).
+    #[arg(long)]
+    pub damp_on_reversal: bool,
     /// The distributed solver: the paper's two-stage distributed Gauss-Seidel with
     /// block-coordinate refinement (dgs), or the condensed separator graph (condensed).
     #[arg(long, value_enum, default_value_t = MethodArg::Condensed)]
@@ -275,9 +279,13 @@ pub fn run(args: DpgoArgs) -> Result<()> {
         if !(g > 0.0 && g < 2.0) {
             bail!("--gamma {g}: over-relaxation needs 0 < γ < 2");
         }
-        agent.gamma = g;
+        // With --damp-on-reversal γ is the damped step's; full steps stay full.
+        if !args.damp_on_reversal {
+            agent.gamma = g;
+        }
         agent.async_gamma = g;
     }
+    agent.damp_on_reversal = args.damp_on_reversal;
     agent.momentum = !args.no_momentum;
     for (flag, v, field) in [
         (

@@ -145,6 +145,15 @@ pub struct AgentOptions {
     /// BENCHMARKS.md, "Where DGS fails on KITTI 00"). Half a step meets in the middle,
     /// which removes that two-cycle.
     pub async_gamma: f64,
+    /// Over such a link, step fully (γ 1) and take `async_gamma` only on a step that
+    /// reverses this robot's previous one (their dot product is negative): the swap of a
+    /// two-cycle reverses every step, while a robot moving steadily towards its fixed
+    /// point keeps its full steps; once a step reversed, the rest of the stage is damped
+    /// (alternating full and half steps let KITTI 00's swap grow back). False (the
+    /// default): `async_gamma` on every step. Measured over 500 rounds (BENCHMARKS.md,
+    /// "Damped only after a reversal"): better on distributed_mapper's 4- and 9-robot
+    /// teams and both KITTI 00 splits, worse on the held-out 16- and 25-robot teams.
+    pub damp_on_reversal: bool,
     /// Stage 1 ends when the robot's relaxed rotations change by less than this
     /// (Frobenius norm over all its poses).
     pub rotation_change: f64,
@@ -229,6 +238,7 @@ impl Default for AgentOptions {
         Self {
             gamma: 1.0,
             async_gamma: 0.5,
+            damp_on_reversal: false,
             rotation_change: 1e-2,
             pose_change: 1e-2,
             refine_change: 1e-3,
@@ -403,6 +413,11 @@ pub struct Agent {
     solution_relaxed: Vec<Matrix3<f64>>,
     solution: Vec<SE3>,
     momentum_steps: u64,
+    /// The previous undamped step of a linear stage (solve − x, flattened over the own
+    /// poses), for [`AgentOptions::damp_on_reversal`].
+    last_step: Vec<f64>,
+    /// A step of this stage reversed the one before it.
+    reversed_in_stage: bool,
     /// The condensed method's state ([`team`]); the own graph must be condensed again.
     team: team::TeamState,
     own_graph_dirty: bool,
@@ -462,6 +477,8 @@ impl Agent {
             solution_relaxed: Vec::new(),
             solution: Vec::new(),
             momentum_steps: 0,
+            last_step: Vec::new(),
+            reversed_in_stage: false,
             team: team::TeamState {
                 path: vec![robot],
                 ..team::TeamState::default()
@@ -962,13 +979,28 @@ impl Agent {
         Ok(true)
     }
 
-    /// γ of the linear stages: Gauss-Seidel's over a link that delivers within the round,
-    /// damped Jacobi's over one that delivers later ([`AgentOptions::async_gamma`]).
-    fn linear_gamma(&self) -> f64 {
-        if self.options.link_delivers {
-            self.options.async_gamma
-        } else {
-            self.options.gamma
+    /// γ of this step of a linear stage: Gauss-Seidel's over a link that delivers within
+    /// the round, damped Jacobi's over one that delivers later
+    /// ([`AgentOptions::async_gamma`]; with [`AgentOptions::damp_on_reversal`] only on a
+    /// step that reverses the previous one). `step`: solve − x over the own poses.
+    fn linear_gamma(&mut self, step: Vec<f64>) -> f64 {
+        let reversed = self.last_step.len() == step.len()
+            && self
+                .last_step
+                .iter()
+                .zip(&step)
+                .map(|(a, b)| a * b)
+                .sum::<f64>()
+                < 0.0;
+        self.last_step = step;
+        // Once reversed, damped for the rest of the stage: alternating full and half
+        // steps lets the swap of a Jacobi two-cycle grow back.
+        self.reversed_in_stage |= reversed;
+        match (self.options.link_delivers, self.options.damp_on_reversal) {
+            (false, _) => self.options.gamma,
+            (true, false) => self.options.async_gamma,
+            (true, true) if self.reversed_in_stage => self.options.async_gamma,
+            (true, true) => self.options.gamma,
         }
     }
 
@@ -987,6 +1019,8 @@ impl Agent {
     /// Restart the momentum from the current estimate (a new stage or frame).
     fn reset_momentum(&mut self) {
         self.momentum_steps = 0;
+        self.last_step.clear();
+        self.reversed_in_stage = false;
         self.solution.clone_from(&self.poses);
         self.solution_relaxed.clone_from(&self.relaxed);
     }
@@ -1049,7 +1083,17 @@ impl Agent {
                 other: &other,
             },
         )?;
-        let gamma = self.linear_gamma();
+        let step = new
+            .iter()
+            .enumerate()
+            .flat_map(|(p, r)| {
+                let d = r
+                    .as_ref()
+                    .map_or_else(Matrix3::zeros, |r| r - self.relaxed[p]);
+                d.as_slice().to_vec()
+            })
+            .collect();
+        let gamma = self.linear_gamma(step);
         // x⁺ = x + γ(solve − x), change |x⁺ − x_prev|, then y = x⁺ + β(x⁺ − x_prev).
         let solved: Vec<(usize, Matrix3<f64>)> = new
             .into_iter()
@@ -1099,7 +1143,17 @@ impl Agent {
                 other: &other_t,
             },
         )?;
-        let gamma = self.linear_gamma();
+        let step = new
+            .iter()
+            .enumerate()
+            .flat_map(|(p, t)| {
+                let d = t
+                    .as_ref()
+                    .map_or_else(Vector3::zeros, |t| t - self.poses[p].translation.vector);
+                [d.x, d.y, d.z]
+            })
+            .collect();
+        let gamma = self.linear_gamma(step);
         let solved: Vec<(usize, Vector3<f64>)> = new
             .into_iter()
             .enumerate()
