@@ -8,10 +8,12 @@
 use std::time::{Duration, Instant};
 
 use doorslam_ipc::wire::{Kind, RobotId};
-use doorslam_team::link::LinkMode;
 use doorslam_team::presence::PresenceRules;
-use doorslam_team::zenoh_link::{ZenohLink, ZenohLinkConfig};
-use doorslam_team::{Link, LinkConfig};
+use doorslam_team::zenoh_link::ZenohLink;
+use doorslam_team::Link;
+
+mod common;
+use common::zenoh_config;
 
 /// Bytes sent by every established TCP connection on 127.0.0.1 (both ends count).
 fn loopback_bytes_sent() -> u64 {
@@ -42,17 +44,8 @@ fn bytes_in_5_s(every_ms: u64, messages: usize) -> u64 {
         .port();
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let team = format!("pb{port}");
-    let config = |id: &str, listen: Vec<String>, connect: Vec<String>| ZenohLinkConfig {
-        team: team.clone(),
-        me: RobotId::new(id).unwrap(),
-        link: LinkConfig {
-            listen,
-            connect,
-            multicast_scouting: false,
-        },
-        mode: LinkMode::Peer,
-        lease_ms: None,
-        security: None,
+    let config = |id: &str, listen: Vec<String>, connect: Vec<String>| {
+        zenoh_config(&team, id, listen, connect, None)
     };
     let rules = PresenceRules {
         check_every_ms: every_ms,

@@ -6,11 +6,13 @@ use std::time::{Duration, Instant};
 
 use doorslam_ipc::wire::RobotId;
 use doorslam_team::ledger::{Direction, Ledger, LedgerHandle};
-use doorslam_team::link::LinkMode;
 use doorslam_team::protocol::{Identity, ProtocolConfig};
 use doorslam_team::standin::{EchoBackend, SimPlaces, SimWorld, TruthVerifier};
-use doorslam_team::zenoh_link::{ZenohLink, ZenohLinkConfig};
+use doorslam_team::zenoh_link::ZenohLink;
 use doorslam_team::{LinkConfig, Node, Pieces};
+
+mod common;
+use common::zenoh_config;
 
 fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
@@ -48,18 +50,13 @@ fn robot(
             backend: Box::new(EchoBackend::new(index)),
         },
     );
-    let link = ZenohLink::open(&ZenohLinkConfig {
-        team: team.into(),
-        me: id,
-        link: LinkConfig {
-            listen,
-            connect,
-            multicast_scouting: false,
-        },
-        mode: LinkMode::Peer,
-        lease_ms: Some(2000),
-        security: None,
-    })
+    let link = ZenohLink::open(&zenoh_config(
+        team,
+        id.as_str(),
+        listen,
+        connect,
+        Some(2000),
+    ))
     .unwrap();
     (node, link)
 }
@@ -134,19 +131,7 @@ fn a_thousand_descriptor_messages_per_second_arrive_without_loss() {
     let team = format!("zr{}", std::process::id());
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
     let open = |id: &str, listen: Vec<String>, connect: Vec<String>| {
-        ZenohLink::open(&ZenohLinkConfig {
-            team: team.clone(),
-            me: RobotId::new(id).unwrap(),
-            link: LinkConfig {
-                listen,
-                connect,
-                multicast_scouting: false,
-            },
-            mode: LinkMode::Peer,
-            lease_ms: None,
-            security: None,
-        })
-        .unwrap()
+        ZenohLink::open(&zenoh_config(&team, id, listen, connect, None)).unwrap()
     };
     let mut la = open("a", vec![endpoint.clone()], vec![]);
     let mut lb = open("b", vec![], vec![endpoint]);
@@ -231,19 +216,7 @@ fn a_restarted_robot_whose_old_session_closes_late_stays_present() {
     let team = format!("zs{}", std::process::id());
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
     let open = |id: &str, listen: Vec<String>, connect: Vec<String>| {
-        ZenohLink::open(&ZenohLinkConfig {
-            team: team.clone(),
-            me: RobotId::new(id).unwrap(),
-            link: LinkConfig {
-                listen,
-                connect,
-                multicast_scouting: false,
-            },
-            mode: LinkMode::Peer,
-            lease_ms: Some(2000),
-            security: None,
-        })
-        .unwrap()
+        ZenohLink::open(&zenoh_config(&team, id, listen, connect, Some(2000))).unwrap()
     };
     let idb = RobotId::new("b").unwrap();
     // What `a` was last told about b: Some(true) present, Some(false) gone.
@@ -297,17 +270,8 @@ fn a_link_that_hears_a_robot_without_its_token_reopens_its_session_and_keeps_its
     use zenoh::Wait;
     let team = format!("zp{}", std::process::id());
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let config = |id: &str, listen: Vec<String>, connect: Vec<String>| ZenohLinkConfig {
-        team: team.clone(),
-        me: RobotId::new(id).unwrap(),
-        link: LinkConfig {
-            listen,
-            connect,
-            multicast_scouting: false,
-        },
-        mode: LinkMode::Peer,
-        lease_ms: Some(2000),
-        security: None,
+    let config = |id: &str, listen: Vec<String>, connect: Vec<String>| {
+        zenoh_config(&team, id, listen, connect, Some(2000))
     };
     let rules = PresenceRules {
         check_every_ms: 300,

@@ -1,6 +1,7 @@
 //! Robots on the in-process link emulation, shared by the protocol tests (`protocol.rs`,
 //! `hostile.rs`), and the hostile teammate's forgeries ([`hostile`], also used over real
-//! Zenoh by `hostile_zenoh.rs`). Each test binary uses a part of it, hence the `dead_code`
+//! Zenoh by `hostile_zenoh.rs`), and plain Zenoh link configs ([`zenoh_config`]: `zenoh_team.rs`,
+//! `presence_bytes.rs`). Each test binary uses a part of it, hence the `dead_code`
 //! allowance.
 #![allow(dead_code)]
 
@@ -14,9 +15,34 @@ use std::time::Duration;
 use doorslam_ipc::wire::RobotId;
 use doorslam_team::emulate::{Bus, EmulatedLink};
 use doorslam_team::ledger::{Ledger, LedgerHandle};
+use doorslam_team::link::LinkMode;
 use doorslam_team::protocol::{Identity, ProtocolConfig};
 use doorslam_team::standin::{BackendLog, EchoBackend, SimPlaces, SimWorld, TruthVerifier};
-use doorslam_team::{Node, Pieces};
+use doorslam_team::zenoh_link::ZenohLinkConfig;
+use doorslam_team::{LinkConfig, Node, Pieces};
+
+/// A test robot's Zenoh link: a peer on plain TCP, no multicast scouting (concurrent test
+/// runs never find each other), the given endpoints and lease.
+pub fn zenoh_config(
+    team: &str,
+    id: &str,
+    listen: Vec<String>,
+    connect: Vec<String>,
+    lease_ms: Option<u64>,
+) -> ZenohLinkConfig {
+    ZenohLinkConfig {
+        team: team.into(),
+        me: RobotId::new(id).unwrap(),
+        link: LinkConfig {
+            listen,
+            connect,
+            multicast_scouting: false,
+        },
+        mode: LinkMode::Peer,
+        lease_ms,
+        security: None,
+    }
+}
 
 pub struct Robot {
     pub id: RobotId,
