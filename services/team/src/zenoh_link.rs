@@ -254,9 +254,12 @@ impl ZenohLink {
         if !done {
             return;
         }
-        let Check {
+        let Some(Check {
             found, timed_out, ..
-        } = self.check.take().expect("a check in flight");
+        }) = self.check.take()
+        else {
+            return;
+        };
         let checked = self.presence.checked(&found, !timed_out, now);
         out.extend(checked.events);
         if checked.reopen {
