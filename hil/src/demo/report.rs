@@ -442,6 +442,9 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
     for r in 0..n {
         let st = status(r);
         let get = |p: &str| st.as_ref().and_then(|s| s.pointer(p)).cloned();
+        // The team link's status.json, read once for the fields below.
+        let link = read_json(&dir(r).join("status.json"));
+        let link_field = |k: &str| link.as_ref().and_then(|s| s.get(k)).cloned();
         let anchored = get("/team/anchored")
             .and_then(|v| v.as_bool())
             .unwrap_or(false);
@@ -485,14 +488,14 @@ pub fn write(config: &DemoConfig, world: &World, log: &RunLog) -> Result<Summary
                     .unwrap_or(false),
                 bytes_sent: super::robot::ledger_bytes_sent(&dir(r).join("ledger.json")),
                 starts: log.starts.get(r).copied().unwrap_or(0),
-                team_link_starts: read_json(&dir(r).join("status.json"))
-                    .and_then(|s| s.get("link_starts").and_then(|v| v.as_u64()))
+                team_link_starts: link_field("link_starts")
+                    .and_then(|v| v.as_u64())
                     .unwrap_or(0),
-                presence: read_json(&dir(r).join("status.json"))
-                    .and_then(|s| serde_json::from_value(s.get("presence")?.clone()).ok())
+                presence: link_field("presence")
+                    .and_then(|v| serde_json::from_value(v).ok())
                     .unwrap_or_default(),
-                present_at_end: read_json(&dir(r).join("status.json"))
-                    .and_then(|s| serde_json::from_value(s.get("present")?.clone()).ok())
+                present_at_end: link_field("present")
+                    .and_then(|v| serde_json::from_value(v).ok())
                     .unwrap_or_default(),
                 unknown_peer_drops: unknown_peer_drops(&dir(r).join("ledger.json")),
                 service_failures: service_failures(&dir(r).join("robot.log")),

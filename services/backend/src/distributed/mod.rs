@@ -979,11 +979,24 @@ impl Agent {
         Ok(true)
     }
 
+    /// Whether the linear stages watch their steps for a reversal
+    /// ([`AgentOptions::damp_on_reversal`] over a link that delivers late).
+    fn watches_reversal(&self) -> bool {
+        self.options.link_delivers && self.options.damp_on_reversal
+    }
+
     /// γ of this step of a linear stage: Gauss-Seidel's over a link that delivers within
     /// the round, damped Jacobi's over one that delivers later
-    /// ([`AgentOptions::async_gamma`]; with [`AgentOptions::damp_on_reversal`] only on a
-    /// step that reverses the previous one). `step`: solve − x over the own poses.
-    fn linear_gamma(&mut self, step: Vec<f64>) -> f64 {
+    /// ([`AgentOptions::async_gamma`]; with [`AgentOptions::damp_on_reversal`] only once a
+    /// step of the stage reversed the one before it). `step`: solve − x over the own
+    /// poses, given only when [`Agent::watches_reversal`].
+    fn linear_gamma(&mut self, step: Option<Vec<f64>>) -> f64 {
+        if !self.options.link_delivers {
+            return self.options.gamma;
+        }
+        let Some(step) = step else {
+            return self.options.async_gamma;
+        };
         let reversed = self.last_step.len() == step.len()
             && self
                 .last_step
@@ -996,11 +1009,10 @@ impl Agent {
         // Once reversed, damped for the rest of the stage: alternating full and half
         // steps lets the swap of a Jacobi two-cycle grow back.
         self.reversed_in_stage |= reversed;
-        match (self.options.link_delivers, self.options.damp_on_reversal) {
-            (false, _) => self.options.gamma,
-            (true, false) => self.options.async_gamma,
-            (true, true) if self.reversed_in_stage => self.options.async_gamma,
-            (true, true) => self.options.gamma,
+        if self.reversed_in_stage {
+            self.options.async_gamma
+        } else {
+            self.options.gamma
         }
     }
 
@@ -1083,16 +1095,17 @@ impl Agent {
                 other: &other,
             },
         )?;
-        let step = new
-            .iter()
-            .enumerate()
-            .flat_map(|(p, r)| {
-                let d = r
-                    .as_ref()
-                    .map_or_else(Matrix3::zeros, |r| r - self.relaxed[p]);
-                d.as_slice().to_vec()
-            })
-            .collect();
+        let step = self.watches_reversal().then(|| {
+            new.iter()
+                .enumerate()
+                .flat_map(|(p, r)| {
+                    let d = r
+                        .as_ref()
+                        .map_or_else(Matrix3::zeros, |r| r - self.relaxed[p]);
+                    d.as_slice().to_vec()
+                })
+                .collect()
+        });
         let gamma = self.linear_gamma(step);
         // x⁺ = x + γ(solve − x), change |x⁺ − x_prev|, then y = x⁺ + β(x⁺ − x_prev).
         let solved: Vec<(usize, Matrix3<f64>)> = new
@@ -1143,16 +1156,17 @@ impl Agent {
                 other: &other_t,
             },
         )?;
-        let step = new
-            .iter()
-            .enumerate()
-            .flat_map(|(p, t)| {
-                let d = t
-                    .as_ref()
-                    .map_or_else(Vector3::zeros, |t| t - self.poses[p].translation.vector);
-                [d.x, d.y, d.z]
-            })
-            .collect();
+        let step = self.watches_reversal().then(|| {
+            new.iter()
+                .enumerate()
+                .flat_map(|(p, t)| {
+                    let d = t
+                        .as_ref()
+                        .map_or_else(Vector3::zeros, |t| t - self.poses[p].translation.vector);
+                    [d.x, d.y, d.z]
+                })
+                .collect()
+        });
         let gamma = self.linear_gamma(step);
         let solved: Vec<(usize, Vector3<f64>)> = new
             .into_iter()
